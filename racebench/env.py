@@ -1,0 +1,317 @@
+"""``RaceEnv``: vision-based quadrotor racing through gates among random obstacles (Gymnasium API).
+
+Layers: :mod:`racebench.track` (data) → :mod:`racebench.obstacles` (scene per episode, from the env's
+``np_random``) → :mod:`racebench.simulation` (PyBullet world) + :mod:`racebench.quadrotor` (controller
+and actuators) → :mod:`racebench.camera` (depth) and :mod:`racebench.reward` (the paper's reward).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from racebench.camera import DepthCamera
+from racebench.obstacles import ObstacleGenerator
+from racebench.quadrotor import Quadrotor, QuadrotorParams
+from racebench.reward import REWARD_TERMS, RewardWeights, reward_terms
+from racebench.scene import Scene
+from racebench.simulation import DroneState, Simulation
+from racebench.track import Track, load_track
+
+OBS_MODES: tuple[str, ...] = ("vision", "state")
+STATE_DIM = 17
+POSITION_SCALE = 10.0  # m per unit
+VELOCITY_SCALE = 10.0  # m/s per unit
+STATE_LIMIT = 5.0  # |state| is clipped here: 50 m, 50 m/s, 5x the max body rate
+
+
+def state_space() -> spaces.Box:
+    """Bounds of the 17-float state observation (quaternion within ±1, everything else within ±5)."""
+    high = np.full(STATE_DIM, STATE_LIMIT, dtype=np.float32)
+    high[10:14] = 1.0
+    return spaces.Box(-high, high, dtype=np.float32)
+
+
+class RaceEnv(gym.Env):
+    """Race a quadrotor through the gates of a track, in order, without touching anything.
+
+    Observation (``obs_mode="vision"``, a Dict; ``"state"`` gives the ``state`` array alone):
+      * ``state`` (17 float32): body-frame vectors to the next and the following gate centre
+        (/10 m), body-frame velocity (/10 m/s), desired speed v_d (/10 m/s), orientation quaternion
+        (x, y, z, w with w ≥ 0), body rates (/max body rate per axis); clipped to ±5 (quaternion ±1).
+      * ``depth`` (1×64×64 float32 in [0, 1]): normalised inverse depth ``0.2 m / depth`` from a camera
+        0.1 m ahead of the body centre along body x, 90° FOV, range 0.2–10 m, Gaussian noise
+        ``depth_noise_std``; see :class:`~racebench.camera.DepthCamera`.
+
+    Action: CTBR in ``[-1, 1]^4`` (collective thrust, roll/pitch/yaw rate), see
+    :mod:`racebench.quadrotor`. The rate controller, motors and drag run at ``physics_freq``.
+
+    Reward: the paper's seven terms (:mod:`racebench.reward`), each reported in ``info["reward_terms"]``.
+
+    Episode: success when the last gate (sprint) or every gate of one lap (loop) is passed in order;
+    ``terminated`` on success, any contact (gate, obstacle, ground) or leaving the arena;
+    ``truncated`` at ``max_episode_time``. ``info``: ``is_success``, ``lap_time`` (s, successful
+    episodes only, else ``None``), ``gates_passed``, ``crashed``, ``crash_reason``, ``reward_terms``, ``time``.
+
+    Args:
+        track: built-in track name (``"S"``, ``"J"``, ``"Circle"``) or a track YAML path.
+        density: obstacles per obstacle region ("per 2 gates"); 0 = obstacle-free.
+        gate_shift: gates shifted uniformly by ±gate_shift m on x, y, z each episode.
+        obs_mode: ``"vision"`` or ``"state"``.
+        desired_speed: v_d in m/s (observation and ``r_vd``).
+        reward_weights: overrides of :class:`~racebench.reward.RewardWeights` fields.
+        control_freq: policy rate in Hz; physics_freq: physics rate in Hz (a multiple of control_freq).
+        max_episode_time: time limit in s.
+        depth_noise_std: σ of Gaussian noise on the normalised inverse depth.
+        obstacle_kind: ``"cylinder"``, ``"box"`` or ``"mixed"``.
+        start_spread: ± half-sizes (m, per axis) of the random start region, overriding the track's.
+        quadrotor: overrides of :class:`~racebench.quadrotor.QuadrotorParams` fields.
+        render_mode: ``None`` or ``"rgb_array"`` (a chase camera).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    def __init__(
+        self,
+        track: str = "S",
+        density: int = 3,
+        gate_shift: float = 0.0,
+        obs_mode: str = "vision",
+        desired_speed: float = 8.0,
+        reward_weights: dict[str, float] | RewardWeights | None = None,
+        control_freq: int = 50,
+        physics_freq: int = 200,
+        max_episode_time: float = 15.0,
+        depth_noise_std: float = 0.02,
+        obstacle_kind: str = "cylinder",
+        start_spread: tuple[float, float, float] | None = None,
+        quadrotor: dict[str, Any] | QuadrotorParams | None = None,
+        render_mode: str | None = None,
+    ) -> None:
+        super().__init__()
+        if obs_mode not in OBS_MODES:
+            raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        for name, value in (("control_freq", control_freq), ("physics_freq", physics_freq)):
+            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        if physics_freq % control_freq:
+            raise ValueError(f"physics_freq ({physics_freq}) must be a multiple of control_freq ({control_freq})")
+        if physics_freq < 100:
+            raise ValueError(f"physics_freq must be >= 100 Hz for the rate loop and motor lag, got {physics_freq}")
+        if not (isinstance(desired_speed, (int, float)) and desired_speed > 0):
+            raise ValueError(f"desired_speed must be > 0 m/s, got {desired_speed!r}")
+        if not (isinstance(max_episode_time, (int, float)) and max_episode_time > 0):
+            raise ValueError(f"max_episode_time must be > 0 s, got {max_episode_time!r}")
+
+        self.track: Track = load_track(track)
+        if start_spread is not None:
+            spread = np.asarray(start_spread, dtype=float)
+            if spread.shape != (3,) or np.any(spread < 0) or not np.all(np.isfinite(spread)):
+                raise ValueError(f"start_spread must be 3 non-negative numbers, got {start_spread!r}")
+            self.track = dataclasses.replace(self.track, start=dataclasses.replace(self.track.start, spread=spread))
+        if isinstance(quadrotor, QuadrotorParams):
+            self.params = quadrotor
+        else:
+            known = {f.name for f in dataclasses.fields(QuadrotorParams)}
+            unknown = sorted(set(quadrotor or {}) - known)
+            if unknown:
+                raise ValueError(f"quadrotor: unknown parameter {unknown[0]!r} (known: {sorted(known)})")
+            self.params = QuadrotorParams(**(quadrotor or {}))
+        self.weights = RewardWeights.from_overrides(reward_weights)
+        self.generator = ObstacleGenerator(
+            self.track,
+            density=density,
+            kind=obstacle_kind,
+            gate_shift=gate_shift,
+            drone_radius=self.params.collision_radius,
+        )
+        self.camera = DepthCamera(noise_std=depth_noise_std)
+        self.quad = Quadrotor(self.params)
+        self.obs_mode = obs_mode
+        self.render_mode = render_mode
+        self.desired_speed = float(desired_speed)
+        self.control_freq = control_freq
+        self.physics_freq = physics_freq
+        self.substeps = physics_freq // control_freq
+        self.dt = 1.0 / physics_freq
+        self.max_steps = int(round(max_episode_time * control_freq))
+        self.metadata = {**self.metadata, "render_fps": control_freq}
+
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
+        depth_space = spaces.Box(0.0, 1.0, shape=(1, self.camera.size, self.camera.size), dtype=np.float32)
+        self.observation_space = (
+            spaces.Dict({"state": state_space(), "depth": depth_space}) if obs_mode == "vision" else state_space()
+        )
+        self.sim = Simulation(self.track, self.params, physics_freq)
+        self.scene: Scene | None = None  # geometry of the current episode (plain data)
+        self.drone: DroneState | None = None  # current kinematic state of the drone
+        self._rate_scale = np.asarray(self.params.max_body_rate, dtype=float)
+
+    # ---------------------------------------------------------------- episode
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
+        """Start an episode on a new scene drawn from ``np_random``, or on ``options["scene"]``."""
+        super().reset(seed=seed)
+        options = options or {}
+        unknown = sorted(set(options) - {"scene"})
+        if unknown:
+            raise ValueError(f"reset: unknown option {unknown[0]!r} (known: ['scene'])")
+        scene = options.get("scene")
+        if scene is None:
+            scene = self.generator.sample_scene(self.np_random)
+        elif not isinstance(scene, Scene):
+            raise ValueError(f"reset: options['scene'] must be a racebench Scene, got {type(scene).__name__}")
+        self.scene = scene
+        self.sim.load_scene(scene)
+        self.sim.reset_drone(scene.start_position, scene.start_yaw)
+        self.quad.reset(hover=True)
+        self.drone = self.sim.drone_state()
+        self.next_gate = 0
+        self.steps = 0
+        self.time = 0.0
+        self.lap_time: float | None = None
+        self.crash_reason: str | None = None
+        self.prev_action = np.array([self.params.hover_action, 0.0, 0.0, 0.0])
+        return self._observation(), self._info(dict.fromkeys(REWARD_TERMS, 0.0))
+
+    def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict]:
+        """Apply one CTBR action for ``physics_freq / control_freq`` physics steps."""
+        if self.scene is None:
+            raise RuntimeError("call reset() before step()")
+        u = np.asarray(action, dtype=np.float64)
+        if u.shape != (4,):
+            raise ValueError(f"action must have shape (4,), got {u.shape}")
+        if not np.all(np.isfinite(u)):
+            raise ValueError(f"action must be finite, got {u.tolist()}")
+        u = np.clip(u, -1.0, 1.0)
+        thrust_cmd, rate_cmd = self.quad.command(u)
+        start_pos = self.drone.position
+        gates = self.scene.gates
+        passed = 0
+        crash = None
+        for _ in range(self.substeps):
+            pos, _, rot, vel, ang = self.drone
+            body_rates = rot.T @ ang
+            thrust, torque = self.quad.actuate(thrust_cmd, rate_cmd, body_rates, self.dt)
+            force = self.quad.drag_force(rot.T @ vel)
+            force[2] += thrust
+            self.sim.step(rot @ force, rot @ torque, pos)
+            self.time += self.dt
+            self.drone = self.sim.drone_state()
+            new_pos = self.drone.position
+            crash = self.sim.contact() or self._out_of_bounds(new_pos)
+            if crash:
+                break
+            if gates[self.next_gate].passed_by(pos, new_pos):
+                self.next_gate += 1
+                passed += 1
+                if self.next_gate == len(gates):
+                    self.lap_time = self.time
+                    break
+        self.steps += 1
+        self.crash_reason = crash
+        pos, _, rot, vel, _ = self.drone
+        target = gates[min(self.next_gate, len(gates) - 1)].center
+        to_gate = target - pos
+        terms = reward_terms(
+            self.weights,
+            prev_gate_distance=float(np.linalg.norm(target - start_pos)),
+            gate_distance=float(np.linalg.norm(to_gate)),
+            yaw=math.atan2(rot[1, 0], rot[0, 0]),
+            bearing_to_gate=math.atan2(to_gate[1], to_gate[0]),
+            action=u,
+            prev_action=self.prev_action,
+            speed=float(np.linalg.norm(vel)),
+            desired_speed=self.desired_speed,
+            collision_distance=float(self.scene.distance(pos)) - self.params.collision_radius,
+            passed_gate=passed > 0,
+            crashed=crash is not None,
+        )
+        terms["pass"] *= max(passed, 1)  # two gates within one control step earn two rewards
+        self.prev_action = u
+        terminated = crash is not None or self.lap_time is not None
+        truncated = not terminated and self.steps >= self.max_steps
+        return self._observation(), float(sum(terms.values())), terminated, truncated, self._info(terms)
+
+    def _out_of_bounds(self, pos: np.ndarray) -> str | None:
+        inside = np.all(pos >= self.scene.arena_low) and np.all(pos <= self.scene.arena_high)
+        return None if inside else "out_of_bounds"
+
+    # ---------------------------------------------------------- observation
+    def _state_vector(self) -> np.ndarray:
+        pos, quat, rot, vel, ang = self.drone
+        gates = self.scene.gates
+        n = len(gates)
+        if self.track.closed_loop:
+            g1, g2 = gates[self.next_gate % n], gates[(self.next_gate + 1) % n]
+        else:
+            g1, g2 = gates[min(self.next_gate, n - 1)], gates[min(self.next_gate + 1, n - 1)]
+        q = quat if quat[3] >= 0 else -quat  # q and −q are the same attitude: keep one
+        state = np.concatenate(
+            [
+                rot.T @ (g1.center - pos) / POSITION_SCALE,
+                rot.T @ (g2.center - pos) / POSITION_SCALE,
+                rot.T @ vel / VELOCITY_SCALE,
+                [self.desired_speed / VELOCITY_SCALE],
+                q,
+                rot.T @ ang / self._rate_scale,
+            ]
+        )
+        space = self.observation_space["state"] if self.obs_mode == "vision" else self.observation_space
+        return np.clip(state, space.low, space.high).astype(np.float32)
+
+    def depth_image(self) -> np.ndarray:
+        """Metric depth (m) seen by the onboard camera now, shape (64, 64)."""
+        pos, _, rot, _, _ = self.drone
+        return self.camera.depth(self.sim.client, pos, rot)
+
+    def _observation(self) -> Any:
+        state = self.drone_vector()
+        if self.obs_mode == "state":
+            return state
+        return {"state": state, "depth": self.camera.normalise(self.depth_image(), self.np_random)}
+
+    def _info(self, terms: dict[str, float]) -> dict[str, Any]:
+        return {
+            "is_success": self.lap_time is not None,
+            "lap_time": self.lap_time,
+            "gates_passed": self.next_gate,
+            "crashed": self.crash_reason is not None,
+            "crash_reason": self.crash_reason,
+            "reward_terms": terms,
+            "time": self.time,
+        }
+
+    # ------------------------------------------------------------ rendering
+    def render(self) -> np.ndarray | None:
+        """A 320×240 RGB chase-camera image (``render_mode="rgb_array"``)."""
+        if self.render_mode != "rgb_array" or self.scene is None:
+            return None
+        import pybullet as p
+
+        pos, _, rot, _, _ = self.drone
+        heading = rot[:, 0].copy()
+        heading[2] = 0.0
+        norm = np.linalg.norm(heading)
+        heading = heading / norm if norm > 1e-6 else np.array([1.0, 0.0, 0.0])
+        eye = pos - 2.5 * heading + np.array([0.0, 0.0, 1.2])
+        c = self.sim.client
+        view = c.computeViewMatrix(eye.tolist(), pos.tolist(), [0.0, 0.0, 1.0])
+        proj = c.computeProjectionMatrixFOV(70.0, 320 / 240, 0.05, 60.0)
+        _, _, rgba, _, _ = c.getCameraImage(
+            320, 240, viewMatrix=view, projectionMatrix=proj, renderer=p.ER_TINY_RENDERER,
+            flags=p.ER_NO_SEGMENTATION_MASK, shadow=0,
+        )
+        return np.asarray(rgba, dtype=np.uint8).reshape(240, 320, 4)[:, :, :3].copy()
+
+    def close(self) -> None:
+        """Release the PyBullet client."""
+        if getattr(self, "sim", None) is not None:
+            self.sim.close()
+            self.sim = None

@@ -1,0 +1,165 @@
+"""The geometry of one episode as plain data: placed gates, obstacles, start pose and arena.
+
+A :class:`Scene` is what the simulator builds, what the reward's distance-to-collision uses and what
+other tools (plots, checkers, re-renderers) read from ``env.unwrapped.scene``. It converts to a
+JSON-able dict and to a trimesh scene that exports as GLB/OBJ for any 3D viewer.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from racebench.track import Gate, Track
+
+ObstacleKind = Literal["cylinder", "box"]
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A static obstacle primitive standing on the ground.
+
+    Attributes:
+        kind: ``"cylinder"`` (vertical pole) or ``"box"``.
+        position: centre of the primitive (world frame, m); ``z = height / 2`` for a grounded one.
+        size: cylinder ``(radius, height)``; box ``(half_x, half_y, half_z)`` in its own frame.
+        yaw: heading of a box about z (rad); ignored for cylinders.
+    """
+
+    kind: ObstacleKind
+    position: np.ndarray
+    size: tuple[float, ...]
+    yaw: float = 0.0
+
+    @property
+    def height(self) -> float:
+        """Full height of the primitive (m)."""
+        return float(self.size[1]) if self.kind == "cylinder" else 2.0 * float(self.size[2])
+
+    def xy_distance(self, points: np.ndarray) -> np.ndarray:
+        """Horizontal distance from points ``(..., 2+)`` to the obstacle's footprint (0 inside)."""
+        p = np.asarray(points, dtype=float)[..., :2] - self.position[:2]
+        if self.kind == "cylinder":
+            return np.maximum(np.linalg.norm(p, axis=-1) - self.size[0], 0.0)
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        local = np.stack([c * p[..., 0] + s * p[..., 1], -s * p[..., 0] + c * p[..., 1]], axis=-1)
+        excess = np.maximum(np.abs(local) - np.asarray(self.size[:2]), 0.0)
+        return np.linalg.norm(excess, axis=-1)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form (JSON-able)."""
+        return {
+            "kind": self.kind,
+            "position": [float(v) for v in self.position],
+            "size": [float(v) for v in self.size],
+            "yaw": float(self.yaw),
+        }
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Everything static in one episode, plus the start pose of the drone.
+
+    Attributes:
+        track: the track the scene was drawn from (gates before perturbation).
+        gates: the gates as placed in this episode (possibly perturbed), in passing order.
+        obstacles: obstacle primitives.
+        start_position: initial drone position (m).
+        start_yaw: initial drone heading (rad).
+        arena_low, arena_high: corners of the flight volume; leaving it is a crash.
+    """
+
+    track: Track
+    gates: tuple[Gate, ...]
+    obstacles: tuple[Obstacle, ...]
+    start_position: np.ndarray
+    start_yaw: float
+    arena_low: np.ndarray
+    arena_high: np.ndarray
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form (JSON-able): gates, obstacles, start and arena."""
+        return {
+            "track": self.track.name,
+            "closed_loop": self.track.closed_loop,
+            "gates": [
+                {
+                    "center": [float(v) for v in g.center],
+                    "yaw": float(g.yaw),
+                    "inner": g.inner,
+                    "outer": g.outer,
+                    "depth": g.depth,
+                }
+                for g in self.gates
+            ],
+            "obstacles": [o.to_dict() for o in self.obstacles],
+            "start": {"position": [float(v) for v in self.start_position], "yaw": float(self.start_yaw)},
+            "arena": {"low": [float(v) for v in self.arena_low], "high": [float(v) for v in self.arena_high]},
+        }
+
+    def boxes(self) -> list[tuple[np.ndarray, np.ndarray, float]]:
+        """Every gate bar and box obstacle as a world-frame ``(centre, half_extents, yaw)`` box."""
+        out = []
+        for gate in self.gates:
+            c, s = math.cos(gate.yaw), math.sin(gate.yaw)
+            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            for centre, half in gate.bars():
+                out.append((gate.center + rot @ centre, half, gate.yaw))
+        for obs in self.obstacles:
+            if obs.kind == "box":
+                out.append((obs.position, np.asarray(obs.size, dtype=float), obs.yaw))
+        return out
+
+    def cylinders(self) -> list[tuple[np.ndarray, float, float]]:
+        """Every cylinder obstacle as ``(centre, radius, height)``."""
+        return [(o.position, float(o.size[0]), float(o.size[1])) for o in self.obstacles if o.kind == "cylinder"]
+
+    def to_trimesh(self, ground: bool = True) -> Any:
+        """The scene as a ``trimesh.Scene`` (gates, obstacles, optional ground, start marker)."""
+        import trimesh
+
+        scene = trimesh.Scene()
+        for i, (centre, half, yaw) in enumerate(self.boxes()):
+            transform = trimesh.transformations.rotation_matrix(yaw, [0, 0, 1])
+            transform[:3, 3] = centre
+            mesh = trimesh.creation.box(extents=2 * half, transform=transform)
+            mesh.visual.face_colors = [230, 120, 20, 255] if i < 4 * len(self.gates) else [90, 90, 200, 255]
+            scene.add_geometry(mesh, geom_name=f"box_{i}")
+        for i, (centre, radius, height) in enumerate(self.cylinders()):
+            transform = np.eye(4)
+            transform[:3, 3] = centre
+            mesh = trimesh.creation.cylinder(radius=radius, height=height, transform=transform)
+            mesh.visual.face_colors = [90, 90, 200, 255]
+            scene.add_geometry(mesh, geom_name=f"cylinder_{i}")
+        if ground:
+            size = self.arena_high - self.arena_low
+            transform = np.eye(4)
+            transform[:3, 3] = [*(self.arena_low[:2] + size[:2] / 2), -0.005]
+            mesh = trimesh.creation.box(extents=[size[0], size[1], 0.01], transform=transform)
+            mesh.visual.face_colors = [200, 200, 200, 255]
+            scene.add_geometry(mesh, geom_name="ground")
+        marker = trimesh.creation.icosphere(radius=0.1)
+        marker.apply_translation(self.start_position)
+        marker.visual.face_colors = [20, 180, 20, 255]
+        scene.add_geometry(marker, geom_name="start")
+        return scene
+
+    def export(self, path: str | Path) -> Path:
+        """Write the scene as a mesh file; the format follows the suffix (``.glb``, ``.obj``, ...)."""
+        path = Path(path)
+        self.to_trimesh().export(str(path))
+        return path
+
+
+def arena_bounds(track: Track, margin: float = 3.0, headroom: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """The flight volume of a track: gates and start widened by ``margin`` on x/y, floor to top + headroom."""
+    points = np.array([g.center for g in track.gates] + [track.start.center])
+    low = points.min(axis=0) - margin
+    high = points.max(axis=0) + margin
+    low[2] = 0.0
+    high[2] = points[:, 2].max() + max(g.outer for g in track.gates) / 2.0 + headroom
+    return low, high

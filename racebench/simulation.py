@@ -1,0 +1,180 @@
+"""PyBullet world of one environment: ground, drone body, gate frames and a pool of obstacle bodies.
+
+One ``BulletClient`` (``p.DIRECT``) per environment. The world is built once; a new episode's scene is
+loaded by moving bodies with ``resetBasePositionAndOrientation``. Obstacle bodies are pooled by shape
+(the obstacle generator quantises sizes), unused ones are parked far below the arena.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+import pybullet as p
+from pybullet_utils import bullet_client
+
+from racebench.quadrotor import QuadrotorParams
+from racebench.scene import Scene
+from racebench.track import Track
+
+_PARK_Z = -100.0  # unused obstacle bodies wait here, out of sight and out of reach
+_GATE_RGBA = [0.95, 0.45, 0.05, 1.0]
+_OBSTACLE_RGBA = [0.35, 0.35, 0.8, 1.0]
+
+
+class DroneState(NamedTuple):
+    """Kinematic state of the drone, world frame unless said otherwise."""
+
+    position: np.ndarray  # m
+    quaternion: np.ndarray  # x, y, z, w (body → world)
+    rotation: np.ndarray  # 3×3 body → world
+    velocity: np.ndarray  # m/s
+    angular_velocity: np.ndarray  # rad/s, world frame
+
+    @property
+    def body_rates(self) -> np.ndarray:
+        """Angular velocity in the body frame, rad/s."""
+        return self.rotation.T @ self.angular_velocity
+
+
+def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
+    """PyBullet (x, y, z, w) quaternion of a rotation by ``yaw`` about z."""
+    return (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
+
+
+class Simulation:
+    """The physics world of one :class:`~racebench.env.RaceEnv`.
+
+    Args:
+        track: the track whose gates are built (their poses change per episode).
+        params: airframe of the drone (mass, inertia, collision radius).
+        physics_freq: physics rate in Hz.
+    """
+
+    def __init__(self, track: Track, params: QuadrotorParams, physics_freq: int) -> None:
+        self.client = bullet_client.BulletClient(connection_mode=p.DIRECT)
+        c = self.client
+        c.setGravity(0.0, 0.0, -params.gravity)
+        c.setTimeStep(1.0 / physics_freq)
+        # Contacts end the episode, so a few solver iterations suffice; deterministic pair order keeps
+        # episodes bit-identical whatever happened before in this client.
+        c.setPhysicsEngineParameter(numSolverIterations=10, deterministicOverlappingPairs=1)
+
+        self.ground = c.createMultiBody(
+            baseMass=0.0,
+            baseCollisionShapeIndex=c.createCollisionShape(p.GEOM_PLANE),
+            baseVisualShapeIndex=c.createVisualShape(
+                p.GEOM_BOX, halfExtents=[100.0, 100.0, 0.005], rgbaColor=[0.75, 0.75, 0.75, 1.0],
+                visualFramePosition=[0.0, 0.0, -0.005],
+            ),
+        )
+        r = params.collision_radius
+        self.drone = c.createMultiBody(
+            baseMass=params.mass,
+            baseCollisionShapeIndex=c.createCollisionShape(p.GEOM_SPHERE, radius=r),
+            # A flat visual body inside the sphere: behind the depth camera, so it never occludes it.
+            baseVisualShapeIndex=c.createVisualShape(
+                p.GEOM_BOX, halfExtents=[0.08, 0.08, 0.02], rgbaColor=[0.8, 0.1, 0.1, 1.0]
+            ),
+            basePosition=[0.0, 0.0, 1.0],
+        )
+        c.changeDynamics(
+            self.drone, -1, localInertiaDiagonal=list(params.inertia), linearDamping=0.0, angularDamping=0.0
+        )
+        self.gates = [self._build_gate(g) for g in track.gates]
+        self.body_kind: dict[int, str] = {self.ground: "ground", **{g: "gate" for g in self.gates}}
+        self._pool: dict[tuple, list[int]] = {}
+        self._active: list[int] = []
+
+    def _build_gate(self, gate) -> int:
+        c = self.client
+        bars = gate.bars()
+        kwargs = dict(
+            halfExtents=[h.tolist() for _, h in bars],
+            shapeTypes=[p.GEOM_BOX] * len(bars),
+        )
+        positions = [b.tolist() for b, _ in bars]
+        collision = c.createCollisionShapeArray(collisionFramePositions=positions, **kwargs)
+        visual = c.createVisualShapeArray(
+            visualFramePositions=positions, rgbaColors=[_GATE_RGBA] * len(bars), **kwargs
+        )
+        return c.createMultiBody(
+            baseMass=0.0, baseCollisionShapeIndex=collision, baseVisualShapeIndex=visual, useMaximalCoordinates=True
+        )
+
+    def _obstacle_body(self, key: tuple, index: int) -> int:
+        pool = self._pool.setdefault(key, [])
+        while len(pool) <= index:
+            c = self.client
+            kind, size = key
+            if kind == "cylinder":
+                shape = dict(shapeType=p.GEOM_CYLINDER, radius=size[0])
+                col = c.createCollisionShape(height=size[1], **shape)
+                vis = c.createVisualShape(length=size[1], rgbaColor=_OBSTACLE_RGBA, **shape)
+            else:
+                shape = dict(shapeType=p.GEOM_BOX, halfExtents=list(size))
+                col = c.createCollisionShape(**shape)
+                vis = c.createVisualShape(rgbaColor=_OBSTACLE_RGBA, **shape)
+            body = c.createMultiBody(
+                baseMass=0.0, baseCollisionShapeIndex=col, baseVisualShapeIndex=vis,
+                basePosition=[0.0, 0.0, _PARK_Z], useMaximalCoordinates=True,
+            )
+            self.body_kind[body] = "obstacle"
+            pool.append(body)
+        return pool[index]
+
+    def load_scene(self, scene: Scene) -> None:
+        """Move gates and obstacles to the poses of ``scene`` (creating pooled bodies only when new)."""
+        c = self.client
+        if len(scene.gates) != len(self.gates):
+            raise ValueError(f"scene has {len(scene.gates)} gates, this track has {len(self.gates)}")
+        for body, gate in zip(self.gates, scene.gates):
+            c.resetBasePositionAndOrientation(body, gate.center.tolist(), yaw_quaternion(gate.yaw))
+        used: dict[tuple, int] = {}
+        active = []
+        for obs in scene.obstacles:
+            key = (obs.kind, tuple(round(float(s), 6) for s in obs.size))
+            body = self._obstacle_body(key, used.get(key, 0))
+            used[key] = used.get(key, 0) + 1
+            c.resetBasePositionAndOrientation(body, obs.position.tolist(), yaw_quaternion(obs.yaw))
+            active.append(body)
+        for body in set(self._active) - set(active):
+            c.resetBasePositionAndOrientation(body, [0.0, 0.0, _PARK_Z], (0.0, 0.0, 0.0, 1.0))
+        self._active = active
+
+    def reset_drone(self, position: np.ndarray, yaw: float) -> None:
+        """Put the drone at rest at ``position`` with heading ``yaw``."""
+        c = self.client
+        c.resetBasePositionAndOrientation(self.drone, position.tolist(), yaw_quaternion(yaw))
+        c.resetBaseVelocity(self.drone, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+
+    def drone_state(self) -> DroneState:
+        """The drone's current kinematic state."""
+        c = self.client
+        pos, quat = c.getBasePositionAndOrientation(self.drone)
+        vel, ang = c.getBaseVelocity(self.drone)
+        rot = np.array(c.getMatrixFromQuaternion(quat)).reshape(3, 3)
+        return DroneState(np.array(pos), np.array(quat), rot, np.array(vel), np.array(ang))
+
+    def step(self, force_world: np.ndarray, torque_world: np.ndarray, position: np.ndarray) -> None:
+        """Apply a world-frame force at the centre of mass and a world-frame torque, then step once."""
+        c = self.client
+        # World-frame application on purpose: PyBullet's LINK_FRAME torque on a base is unreliable.
+        c.applyExternalForce(self.drone, -1, force_world.tolist(), position.tolist(), p.WORLD_FRAME)
+        c.applyExternalTorque(self.drone, -1, torque_world.tolist(), p.WORLD_FRAME)
+        c.stepSimulation()
+
+    def contact(self) -> str | None:
+        """What the drone touches now (``"gate"``, ``"obstacle"``, ``"ground"``), or ``None``."""
+        for point in self.client.getContactPoints(bodyA=self.drone):
+            if point[8] <= 0.0:  # contactDistance: Bullet also reports near-misses within its margin
+                return self.body_kind.get(point[2], "obstacle")
+        return None
+
+    def close(self) -> None:
+        """Disconnect the PyBullet client."""
+        try:
+            self.client.disconnect()
+        except p.error:
+            pass

@@ -1,0 +1,1 @@
+"""Built-in track files (S, J, Circle), shipped as package data of ``racebench.tracks``."""
