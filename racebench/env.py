@@ -272,7 +272,7 @@ class RaceEnv(gym.Env):
         return self.camera.depth(self.sim.client, pos, rot)
 
     def _observation(self) -> Any:
-        state = self.drone_vector()
+        state = self._state_vector()
         if self.obs_mode == "state":
             return state
         return {"state": state, "depth": self.camera.normalise(self.depth_image(), self.np_random)}

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Literal
 
@@ -118,6 +119,64 @@ class Scene:
         """Every cylinder obstacle as ``(centre, radius, height)``."""
         return [(o.position, float(o.size[0]), float(o.size[1])) for o in self.obstacles if o.kind == "cylinder"]
 
+    @cached_property
+    def primitive_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """All gate bars and obstacles stacked as K rounded boxes: ``(centre, half, yaw, rounding)``.
+
+        Shapes ``(K, 3)``, ``(K, 3)``, ``(K,)``, ``(K,)``. Each primitive is a box yawed about z with half
+        extents ``half`` whose footprint is rounded (Minkowski sum with a disc) by ``rounding``: bars and box
+        obstacles have rounding 0; a cylinder is a box of zero footprint rounded by its radius. Built once
+        per scene; treat the arrays as read-only.
+        """
+        prims = [(c, h, yaw, 0.0) for c, h, yaw in self.boxes()]
+        prims += [(c, np.array([0.0, 0.0, height / 2.0]), 0.0, r) for c, r, height in self.cylinders()]
+        centre = np.array([p[0] for p in prims], dtype=float).reshape(-1, 3)
+        half = np.array([p[1] for p in prims], dtype=float).reshape(-1, 3)
+        yaw = np.array([p[2] for p in prims], dtype=float)
+        rounding = np.array([p[3] for p in prims], dtype=float)
+        return centre, half, yaw, rounding
+
+    @cached_property
+    def _distance_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """:attr:`primitive_arrays` arranged for :meth:`distance` (``None`` when there are none).
+
+        One ``(3, 3K)`` matrix maps world points to the local x, y and z of all K primitives at once, so
+        a query is a single matmul plus a few element-wise operations (cheap for the per-step call).
+        """
+        centre, half, yaw, rounding = self.primitive_arrays
+        k = len(rounding)
+        if k == 0:
+            return None
+        cos, sin = np.cos(yaw), np.sin(yaw)
+        to_local = np.zeros((3, 3 * k))
+        to_local[0, :k], to_local[1, :k] = cos, sin  # local x
+        to_local[0, k : 2 * k], to_local[1, k : 2 * k] = -sin, cos  # local y
+        to_local[2, 2 * k :] = 1.0  # z is unrotated
+        offset = np.concatenate(
+            [cos * centre[:, 0] + sin * centre[:, 1], -sin * centre[:, 0] + cos * centre[:, 1], centre[:, 2]]
+        )
+        return to_local, offset, half.T.reshape(-1), rounding
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Euclidean distance from points ``(..., 3)`` to the nearest gate bar or obstacle surface.
+
+        Exact for the oriented boxes of :meth:`boxes` and the finite vertical cylinders of
+        :meth:`cylinders`; 0 inside a solid; ``inf`` when the scene has no primitives. The ground and
+        the arena walls are not included. Returns an array of shape ``points.shape[:-1]``.
+        """
+        pts = np.asarray(points, dtype=float)
+        if pts.shape[-1:] != (3,):
+            raise ValueError(f"points must have shape (..., 3), got {pts.shape}")
+        tables = self._distance_tables
+        if tables is None:
+            return np.full(pts.shape[:-1], np.inf)
+        flat = pts.reshape(-1, 3)
+        out = np.empty(len(flat))
+        chunk = 8192  # bounds the (chunk, 3K) temporaries for large grids
+        for i in range(0, len(flat), chunk):
+            out[i : i + chunk] = _rounded_box_distance(flat[i : i + chunk], *tables)
+        return out.reshape(pts.shape[:-1])
+
     def to_trimesh(self, ground: bool = True) -> Any:
         """The scene as a ``trimesh.Scene`` (gates, obstacles, optional ground, start marker)."""
         import trimesh
@@ -163,3 +222,20 @@ def arena_bounds(track: Track, margin: float = 3.0, headroom: float = 2.0) -> tu
     low[2] = 0.0
     high[2] = points[:, 2].max() + max(g.outer for g in track.gates) / 2.0 + headroom
     return low, high
+
+
+def _rounded_box_distance(
+    points: np.ndarray, to_local: np.ndarray, offset: np.ndarray, half: np.ndarray, rounding: np.ndarray
+) -> np.ndarray:
+    """Distance from points ``(M, 3)`` to the nearest of the stacked primitives of ``Scene._distance_tables``."""
+    k = len(rounding)
+    excess = np.abs(points @ to_local - offset)
+    excess -= half
+    np.maximum(excess, 0.0, out=excess)
+    excess *= excess
+    horizontal = np.sqrt(excess[:, :k] + excess[:, k : 2 * k])
+    horizontal -= rounding
+    np.maximum(horizontal, 0.0, out=horizontal)
+    horizontal *= horizontal
+    horizontal += excess[:, 2 * k :]
+    return np.sqrt(horizontal.min(axis=1))
