@@ -305,8 +305,13 @@ class RaceEnv(gym.Env):
         view = c.computeViewMatrix(eye.tolist(), pos.tolist(), [0.0, 0.0, 1.0])
         proj = c.computeProjectionMatrixFOV(70.0, 320 / 240, 0.05, 60.0)
         _, _, rgba, _, _ = c.getCameraImage(
-            320, 240, viewMatrix=view, projectionMatrix=proj, renderer=p.ER_TINY_RENDERER,
-            flags=p.ER_NO_SEGMENTATION_MASK, shadow=0,
+            320,
+            240,
+            viewMatrix=view,
+            projectionMatrix=proj,
+            renderer=p.ER_TINY_RENDERER,
+            flags=p.ER_NO_SEGMENTATION_MASK,
+            shadow=0,
         )
         return np.asarray(rgba, dtype=np.uint8).reshape(240, 320, 4)[:, :, :3].copy()
 

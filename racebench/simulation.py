@@ -7,16 +7,43 @@ loaded by moving bodies with ``resetBasePositionAndOrientation``. Obstacle bodie
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import sys
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import numpy as np
-import pybullet as p
-from pybullet_utils import bullet_client
 
 from racebench.quadrotor import QuadrotorParams
 from racebench.scene import Scene
 from racebench.track import Track
+
+
+@contextlib.contextmanager
+def _quiet_stdout() -> Iterator[None]:
+    """Silence C-level stdout (PyBullet prints its build time and ``argv[0]=`` on import/connect)."""
+    try:
+        sys.stdout.flush()
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # no real file descriptor (e.g. a notebook)
+        yield
+        return
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), fd)
+        yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+
+
+with _quiet_stdout():
+    import pybullet as p
+    from pybullet_utils import bullet_client
+
 
 _PARK_Z = -100.0  # unused obstacle bodies wait here, out of sight and out of reach
 _GATE_RGBA = [0.95, 0.45, 0.05, 1.0]
@@ -53,7 +80,8 @@ class Simulation:
     """
 
     def __init__(self, track: Track, params: QuadrotorParams, physics_freq: int) -> None:
-        self.client = bullet_client.BulletClient(connection_mode=p.DIRECT)
+        with _quiet_stdout():
+            self.client = bullet_client.BulletClient(connection_mode=p.DIRECT)
         c = self.client
         c.setGravity(0.0, 0.0, -params.gravity)
         c.setTimeStep(1.0 / physics_freq)
@@ -65,7 +93,9 @@ class Simulation:
             baseMass=0.0,
             baseCollisionShapeIndex=c.createCollisionShape(p.GEOM_PLANE),
             baseVisualShapeIndex=c.createVisualShape(
-                p.GEOM_BOX, halfExtents=[100.0, 100.0, 0.005], rgbaColor=[0.75, 0.75, 0.75, 1.0],
+                p.GEOM_BOX,
+                halfExtents=[100.0, 100.0, 0.005],
+                rgbaColor=[0.75, 0.75, 0.75, 1.0],
                 visualFramePosition=[0.0, 0.0, -0.005],
             ),
         )
@@ -96,9 +126,7 @@ class Simulation:
         )
         positions = [b.tolist() for b, _ in bars]
         collision = c.createCollisionShapeArray(collisionFramePositions=positions, **kwargs)
-        visual = c.createVisualShapeArray(
-            visualFramePositions=positions, rgbaColors=[_GATE_RGBA] * len(bars), **kwargs
-        )
+        visual = c.createVisualShapeArray(visualFramePositions=positions, rgbaColors=[_GATE_RGBA] * len(bars), **kwargs)
         return c.createMultiBody(
             baseMass=0.0, baseCollisionShapeIndex=collision, baseVisualShapeIndex=visual, useMaximalCoordinates=True
         )
@@ -117,8 +145,11 @@ class Simulation:
                 col = c.createCollisionShape(**shape)
                 vis = c.createVisualShape(rgbaColor=_OBSTACLE_RGBA, **shape)
             body = c.createMultiBody(
-                baseMass=0.0, baseCollisionShapeIndex=col, baseVisualShapeIndex=vis,
-                basePosition=[0.0, 0.0, _PARK_Z], useMaximalCoordinates=True,
+                baseMass=0.0,
+                baseCollisionShapeIndex=col,
+                baseVisualShapeIndex=vis,
+                basePosition=[0.0, 0.0, _PARK_Z],
+                useMaximalCoordinates=True,
             )
             self.body_kind[body] = "obstacle"
             pool.append(body)
@@ -129,7 +160,7 @@ class Simulation:
         c = self.client
         if len(scene.gates) != len(self.gates):
             raise ValueError(f"scene has {len(scene.gates)} gates, this track has {len(self.gates)}")
-        for body, gate in zip(self.gates, scene.gates):
+        for body, gate in zip(self.gates, scene.gates, strict=True):
             c.resetBasePositionAndOrientation(body, gate.center.tolist(), yaw_quaternion(gate.yaw))
         used: dict[tuple, int] = {}
         active = []

@@ -262,9 +262,8 @@ def parse_track(data: Any, source: str = "<track>") -> Track:
             or not all(0 <= b < len(gates) for b in between)
             or between[0] == between[1]
         ):
-            raise _fail(
-                source, f"{where}.between", f"expected two different gate indices in [0, {len(gates) - 1}], got {between!r}"
-            )
+            expected = f"expected two different gate indices in [0, {len(gates) - 1}], got {between!r}"
+            raise _fail(source, f"{where}.between", expected)
         half_width = _number(r.get("half_width", 1.2), source, f"{where}.half_width", positive=True)
         regions.append(ObstacleRegion(between=(between[0], between[1]), half_width=half_width))
 

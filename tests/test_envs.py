@@ -74,7 +74,7 @@ def assert_same(a, b) -> None:
             assert_same(a[k], b[k])
     elif isinstance(a, (tuple, list)):
         assert len(a) == len(b)
-        for x, y in zip(a, b):
+        for x, y in zip(a, b, strict=True):
             assert_same(x, y)
     elif isinstance(a, np.ndarray):
         assert a.dtype == b.dtype and np.array_equal(a, b)

@@ -1,0 +1,122 @@
+"""Whole episodes: gates in order, success and lap time, crashes, reward bookkeeping."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from racebench.control import GateFollower, acceleration_to_ctbr
+from racebench.env import RaceEnv
+
+
+def run_follower(env: gym.Env, seed: int) -> tuple[dict, list[dict], float]:
+    follower = GateFollower()
+    _, info = env.reset(seed=seed)
+    infos, total = [], 0.0
+    terminated = truncated = False
+    while not (terminated or truncated):
+        _, reward, terminated, truncated, info = env.step(follower.act_privileged(env.unwrapped))
+        assert reward == pytest.approx(sum(info["reward_terms"].values()))
+        infos.append(info)
+        total += reward
+    return info, infos, total
+
+
+@pytest.mark.parametrize("track", ["S", "J", "Circle"])
+def test_follower_finishes_obstacle_free_tracks(track: str) -> None:
+    env = gym.make(f"RaceObs-{track}-Level1-v0", obs_mode="state")
+    for seed in range(3):
+        info, infos, _ = run_follower(env, seed)
+        assert info["is_success"] and not info["crashed"], info
+        assert info["gates_passed"] == 4
+        # Gates are counted one at a time, in order, and each pays λ7 once.
+        counts = [i["gates_passed"] for i in infos]
+        assert counts == sorted(counts) and set(counts) == {0, 1, 2, 3, 4} - ({0} if counts[0] else set())
+        assert sum(i["reward_terms"]["pass"] for i in infos) == pytest.approx(4 * 5.0)
+        steps = len(infos)
+        assert info["lap_time"] == pytest.approx(info["time"])
+        assert (steps - 1) / 50 < info["lap_time"] <= steps / 50 + 1e-9
+    env.close()
+
+
+def fly_velocity(env: RaceEnv, velocity: np.ndarray, seconds: float) -> dict:
+    """Track a world-frame velocity with the geometric controller; return the last info."""
+    info: dict = {}
+    for _ in range(int(seconds * env.control_freq)):
+        state = env.drone
+        accel = 4.0 * (velocity - state.velocity)
+        action = acceleration_to_ctbr(accel, math.atan2(velocity[1], velocity[0]), state.rotation, env.params)
+        _, _, terminated, _, info = env.step(action)
+        if terminated:
+            break
+    return info
+
+
+def scene_with_start(env: RaceEnv, position, yaw: float = 0.0):
+    env.reset(seed=0)
+    return dataclasses.replace(env.scene, start_position=np.array(position, float), start_yaw=yaw)
+
+
+def test_a_gate_out_of_order_does_not_count() -> None:
+    env = RaceEnv(track="S", density=0, obs_mode="state")
+    # Start just before gate 2 (index 1) and fly through it: gate 1 is still the next gate.
+    env.reset(options={"scene": scene_with_start(env, [6.0, -1.0, 1.0])})
+    info = fly_velocity(env, np.array([2.0, 0.0, 0.0]), 1.2)
+    assert env.drone.position[0] > 7.5 and not info["crashed"]
+    assert info["gates_passed"] == 0
+
+
+def test_a_gate_flown_backwards_does_not_count() -> None:
+    env = RaceEnv(track="S", density=0, obs_mode="state")
+    env.reset(options={"scene": scene_with_start(env, [4.0, 0.0, 1.0], yaw=math.pi)})
+    info = fly_velocity(env, np.array([-2.0, 0.0, 0.0]), 1.2)
+    assert env.drone.position[0] < 2.5 and not info["crashed"]
+    assert info["gates_passed"] == 0
+
+
+def test_flying_into_a_gate_bar_is_a_gate_crash() -> None:
+    env = RaceEnv(track="S", density=0, obs_mode="state")
+    # Aim at the left bar of gate 1: y = inner/2 + bar/2 = 0.57.
+    env.reset(options={"scene": scene_with_start(env, [1.5, 0.57, 1.0])})
+    info = fly_velocity(env, np.array([2.0, 0.0, 0.0]), 2.0)
+    assert info["crashed"] and info["crash_reason"] == "gate" and info["gates_passed"] == 0
+    assert info["reward_terms"]["crash"] == -4.0
+
+
+def test_flying_into_an_obstacle_is_an_obstacle_crash() -> None:
+    env = RaceEnv(track="S", density=3, obs_mode="state")
+    env.reset(seed=0)
+    obstacle = env.scene.obstacles[0]
+    start = obstacle.position.copy()
+    start[0] -= 1.0
+    start[2] = 1.0
+    scene = dataclasses.replace(env.scene, start_position=start, start_yaw=0.0)
+    env.reset(options={"scene": scene})
+    info = fly_velocity(env, np.array([2.0, 0.0, 0.0]), 1.5)
+    assert info["crash_reason"] == "obstacle"
+
+
+def test_time_limit_truncates() -> None:
+    env = RaceEnv(track="S", density=0, obs_mode="state", max_episode_time=0.5)
+    env.reset(seed=0)
+    hover = np.array([env.params.hover_action, 0, 0, 0], dtype=np.float32)
+    for step in range(25):
+        _, _, terminated, truncated, info = env.step(hover)
+        assert not terminated
+        assert truncated == (step == 24)
+    assert not info["is_success"] and info["lap_time"] is None
+
+
+def test_avoid_term_uses_distance_to_nearest_surface() -> None:
+    env = RaceEnv(track="S", density=0, obs_mode="state", start_spread=(0, 0, 0))
+    env.reset(seed=0)
+    hover = np.array([env.params.hover_action, 0, 0, 0], dtype=np.float32)
+    _, _, _, _, info = env.step(hover)
+    # Hovering at (1, 0, 1): nearest surface is gate 1's frame at x = 3 − depth/2, lateral 0.5 m off axis.
+    gate = env.scene.gates[0]
+    expected = math.hypot(2.0 - gate.depth / 2, gate.inner / 2) - env.params.collision_radius
+    assert info["reward_terms"]["avoid"] == pytest.approx(-0.01 / (expected + 0.1), rel=1e-3)
