@@ -1,4 +1,4 @@
-"""``racebench`` command line: list environments, fly an episode, export a scene."""
+"""``racebench`` command line: list environments, fly, evaluate, tables, figures, scene export."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -83,6 +84,37 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_scene.add_argument("--seed", type=int, default=0)
     p_scene.add_argument("--out", default="scene.glb", help="mesh path; the JSON goes beside it")
 
+    p_eval = sub.add_parser("evaluate", help="evaluate an agent on env ids or suites; writes episodes/summary CSVs")
+    p_eval.add_argument(
+        "--agent", required=True, help="random | hover | planner | follow | model.zip | policy.onnx | module:Class"
+    )
+    p_eval.add_argument(
+        "--envs", nargs="+", default=["main"], help="env ids and/or suites: main, density, gates, paper (default: main)"
+    )
+    p_eval.add_argument("--episodes", type=int, default=10, help="episodes per env id (default 10, as in the paper)")
+    p_eval.add_argument("--out", default=None, help="output directory (default: results/<agent name>)")
+    p_eval.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    p_eval.add_argument("--name", default=None, help="agent name in the CSVs (default: derived from --agent)")
+    p_eval.add_argument("--save-trajectories", action="store_true", help="store flown paths for `racebench plot`")
+
+    p_table = sub.add_parser("table", help="the paper's Table II, III or IV from result directories / summary CSVs")
+    p_table.add_argument("results", nargs="+", help="result directories or summary.csv files")
+    p_table.add_argument("--table", default="II", choices=["II", "III", "IV"])
+    p_table.add_argument("--format", default="md", choices=["md", "latex"])
+    p_table.add_argument("--no-ci", action="store_true", help="success rates without Wilson intervals")
+    p_table.add_argument("--out", default=None, help="write to this file instead of stdout")
+
+    p_plot = sub.add_parser("plot", help="figures from result directories: SR by track, vs density, vs gate shift")
+    p_plot.add_argument("results", nargs="+", help="result directories or summary.csv files")
+    p_plot.add_argument("--out", default="results/figures", help="output directory for PNGs")
+    p_plot.add_argument("--track-env", default=None, help="also draw the 3D track plot of this env id (Fig. 4)")
+
+    p_render = sub.add_parser("render", help="write a GIF of one episode: chase view beside the FPV depth image")
+    p_render.add_argument("--agent", default="planner")
+    p_render.add_argument("--env", default="RaceObs-S-v0")
+    p_render.add_argument("--seed", type=int, default=1_000_000)
+    p_render.add_argument("--out", default="episode.gif")
+
     args = parser.parse_args(argv)
     if args.command == "envs":
         print("\n".join(racebench.ENV_IDS))
@@ -101,6 +133,73 @@ def main(argv: Sequence[str] | None = None) -> int:
         json_path.write_text(json.dumps(scene.to_dict(), indent=2))
         env.close()
         print(f"wrote {path} and {json_path}")
+    elif args.command == "evaluate":
+        return _evaluate(args)
+    elif args.command == "table":
+        from racebench.evaluation import read_summaries
+        from racebench.tables import make_table
+
+        text = make_table(read_summaries(args.results), args.table, args.format, ci=not args.no_ci)
+        if args.out:
+            Path(args.out).write_text(text)
+            print(f"wrote {args.out}")
+        else:
+            print(text)
+    elif args.command == "plot":
+        from racebench import plots
+        from racebench.evaluation import read_summaries
+
+        summary = read_summaries(args.results)
+        out = Path(args.out)
+        written = []
+        for name, make in (
+            ("success_by_track.png", lambda p: plots.plot_success_by_track(summary, p)),
+            ("success_vs_density.png", lambda p: plots.plot_success_vs(summary, "density", p)),
+            ("success_vs_gate_shift.png", lambda p: plots.plot_success_vs(summary, "gates", p)),
+        ):
+            try:
+                written.append(make(out / name))
+            except ValueError as exc:  # a figure whose results are absent is skipped, with the reason
+                print(f"skipped {name}: {exc}")
+        if args.track_env:
+            source = next((Path(r) for r in args.results if (Path(r) / "trajectories").is_dir()), None)
+            if source is None:
+                raise SystemExit("racebench plot: --track-env needs a result directory made with --save-trajectories")
+            written.append(plots.plot_track_3d(source, args.track_env, out / f"track_{args.track_env}.png"))
+        for path in written:
+            print(f"wrote {path}")
+    elif args.command == "render":
+        from racebench.plots import render_episode_gif
+
+        _make(args.env)  # validates the id with a clear message
+        print(f"wrote {render_episode_gif(args.agent, args.env, args.seed, args.out)}")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from racebench.agents import AgentLoadError
+    from racebench.evaluation import Evaluator
+
+    try:
+        evaluator = Evaluator(
+            args.agent,
+            envs=args.envs,
+            episodes=args.episodes,
+            out_dir=args.out or Path("results") / (args.name or Path(args.agent).stem.replace(":", "_")),
+            workers=args.workers,
+            agent_name=args.name,
+            save_trajectories=args.save_trajectories,
+        )
+    except (AgentLoadError, ValueError) as exc:
+        raise SystemExit(f"racebench evaluate: {exc}") from exc
+    todo = len(evaluator.pending())
+    total = len(evaluator.env_ids) * evaluator.episodes
+    print(f"{evaluator.agent_name}: {total - todo}/{total} episodes already done in {evaluator.out_dir}, {todo} to run")
+    summary = evaluator.run()
+    shown = summary[summary["agent"] == evaluator.agent_name]
+    columns = ["env_id", "n", "successes", "success_rate", "sr_ci_low", "sr_ci_high", "lap_time_median"]
+    print(shown[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    print(f"wrote {evaluator.out_dir / 'episodes.csv'} and {evaluator.out_dir / 'summary.csv'}")
     return 0
 
 

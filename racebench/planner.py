@@ -81,7 +81,7 @@ class PlannerAgent:
         self.path: np.ndarray | None = None
         self._fallback = GateFollower(speed=speed)
 
-    def reset(self, env=None) -> None:
+    def reset(self, env=None, seed: int | None = None) -> None:
         """Plan for the episode that ``env`` (an unwrapped :class:`~racebench.env.RaceEnv`) has just reset."""
         if env is None:
             raise ValueError("PlannerAgent is privileged: reset(env) needs the unwrapped RaceEnv")

@@ -1,0 +1,323 @@
+"""Agents that the evaluator can fly, and the loader that turns one spec string into an agent.
+
+An agent follows the :class:`Agent` protocol: ``reset`` at each episode start, ``act`` on one observation,
+and a declared ``obs_mode`` (``"vision"`` or ``"state"``). Stateful agents (recurrent policies) keep their
+own memory and clear it in ``reset``. A *privileged* agent (``privileged = True``) is handed the
+unwrapped environment in ``reset`` and may read the true scene and drone state; it is marked so in every
+table and figure.
+
+Spec strings accepted by :func:`load_agent`:
+
+* ``random``, ``hover``, ``planner`` (privileged), ``follow`` (privileged, ignores obstacles);
+* ``path/to/model.zip``: a stable-baselines3 / sb3-contrib checkpoint (recurrent policies included);
+* ``path/to/policy.onnx``: an ONNX policy run with onnxruntime (no code from the file runs), see
+  :class:`OnnxAgent` for the expected inputs and outputs and :func:`export_onnx` to make one;
+* ``package.module:ClassName`` or ``path/to/file.py:ClassName``: a Python class built with no arguments.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import zipfile
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from racebench.control import GateFollower
+from racebench.quadrotor import QuadrotorParams
+
+BUILTIN_AGENTS: tuple[str, ...] = ("random", "hover", "planner", "follow")
+
+
+class AgentLoadError(ValueError):
+    """An agent spec could not be turned into an agent; the message names the spec and the reason."""
+
+
+@runtime_checkable
+class Agent(Protocol):
+    """What the evaluator needs from an agent."""
+
+    name: str
+    obs_mode: str  # "vision" or "state": the observation the agent expects
+    privileged: bool  # True: reset() receives the unwrapped env and the agent may read the true state
+
+    def reset(self, env: Any = None, seed: int | None = None) -> None:
+        """Start of an episode (``env`` is given to privileged agents only; ``seed`` is the episode's)."""
+
+    def act(self, obs: Any) -> np.ndarray:
+        """A CTBR action in ``[-1, 1]^4`` for one observation."""
+
+
+class RandomAgent:
+    """Uniform random actions, seeded per episode so a sweep is reproducible."""
+
+    name = "random"
+    obs_mode = "state"
+    privileged = False
+
+    def __init__(self) -> None:
+        self.rng = np.random.default_rng(0)
+
+    def reset(self, env: Any = None, seed: int | None = None) -> None:
+        """Reseed from the episode seed."""
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, obs: Any) -> np.ndarray:
+        """A uniform sample of ``[-1, 1]^4``."""
+        return self.rng.uniform(-1.0, 1.0, size=4).astype(np.float32)
+
+
+class HoverAgent:
+    """Hover thrust, zero body rates: the do-nothing baseline."""
+
+    name = "hover"
+    obs_mode = "state"
+    privileged = False
+
+    def __init__(self, params: QuadrotorParams | None = None) -> None:
+        self.action = np.array([(params or QuadrotorParams()).hover_action, 0.0, 0.0, 0.0], dtype=np.float32)
+
+    def reset(self, env: Any = None, seed: int | None = None) -> None:
+        """Nothing to reset."""
+
+    def act(self, obs: Any) -> np.ndarray:
+        """The hover action."""
+        return self.action
+
+
+class FollowAgent:
+    """Privileged gate-axis follower (:class:`~racebench.control.GateFollower`); it ignores obstacles."""
+
+    name = "follow"
+    obs_mode = "state"
+    privileged = True
+
+    def __init__(self) -> None:
+        self.follower = GateFollower()
+        self.env = None
+
+    def reset(self, env: Any = None, seed: int | None = None) -> None:
+        """Keep the unwrapped env to read the true state from."""
+        if env is None:
+            raise ValueError("FollowAgent is privileged: reset() needs the unwrapped RaceEnv")
+        self.env = env
+
+    def act(self, obs: Any) -> np.ndarray:
+        """Fly along the next gate's axis."""
+        return self.follower.act_privileged(self.env)
+
+
+def _obs_mode_of(space: Any) -> str:
+    from gymnasium import spaces
+
+    if isinstance(space, spaces.Dict) and "depth" in space.spaces:
+        return "vision"
+    if isinstance(space, spaces.Box) and space.shape == (17,):
+        return "state"
+    raise AgentLoadError(f"policy observation space {space} is neither racebench's vision Dict nor its 17-d state")
+
+
+class SB3Agent:
+    """A stable-baselines3 or sb3-contrib checkpoint, acting deterministically.
+
+    Recurrent policies (sb3-contrib ``RecurrentPPO``, or any policy whose ``predict`` takes a state) have
+    their hidden state carried across steps and cleared at each episode start.
+    """
+
+    privileged = False
+
+    def __init__(self, path: str | Path, device: str = "cpu") -> None:
+        path = Path(path)
+        if not path.is_file():
+            raise AgentLoadError(f"SB3 checkpoint {str(path)!r} does not exist")
+        if not zipfile.is_zipfile(path):
+            raise AgentLoadError(f"SB3 checkpoint {str(path)!r} is not a zip archive (corrupt or not a checkpoint)")
+        self.model = self._load(path, device)
+        self.name = path.stem
+        self.obs_mode = _obs_mode_of(self.model.observation_space)
+        self.recurrent = "Recurrent" in type(self.model.policy).__name__ or hasattr(self.model.policy, "recurrent")
+        self.state: Any = None
+        self.episode_start = np.ones((1,), dtype=bool)
+
+    @staticmethod
+    def _load(path: Path, device: str) -> Any:
+        from stable_baselines3 import A2C, DDPG, PPO, SAC, TD3
+        from stable_baselines3.common.save_util import load_from_zip_file
+
+        try:
+            data, _, _ = load_from_zip_file(path, device=device, print_system_info=False)
+        except Exception as exc:  # noqa: BLE001 - SB3 raises many kinds on a damaged archive
+            raise AgentLoadError(f"SB3 checkpoint {str(path)!r} could not be read: {exc}") from exc
+        policy_name = getattr(data.get("policy_class"), "__name__", "")
+        candidates: list[Any] = []
+        if "Recurrent" in policy_name:
+            try:
+                from sb3_contrib import RecurrentPPO
+            except ImportError as exc:
+                raise AgentLoadError(f"{str(path)!r} holds a recurrent policy: pip install sb3-contrib") from exc
+            candidates.append(RecurrentPPO)
+        custom = data.get("racebench_algorithm")
+        if custom:
+            module, _, cls = str(custom).partition(":")
+            candidates.insert(0, getattr(importlib.import_module(module), cls))
+        candidates += [PPO, SAC, TD3, A2C, DDPG]
+        errors = []
+        for algorithm in candidates:
+            try:
+                return algorithm.load(path, device=device)
+            except Exception as exc:  # noqa: BLE001 - try the next algorithm class
+                errors.append(f"{algorithm.__name__}: {exc}")
+        raise AgentLoadError(f"SB3 checkpoint {str(path)!r} could not be loaded by any algorithm ({'; '.join(errors)})")
+
+    def reset(self, env: Any = None, seed: int | None = None) -> None:
+        """Clear the recurrent state."""
+        self.state = None
+        self.episode_start = np.ones((1,), dtype=bool)
+
+    def act(self, obs: Any) -> np.ndarray:
+        """Deterministic action of the policy."""
+        if self.recurrent:
+            action, self.state = self.model.predict(
+                obs, state=self.state, episode_start=self.episode_start, deterministic=True
+            )
+            self.episode_start = np.zeros((1,), dtype=bool)
+        else:
+            action, _ = self.model.predict(obs, deterministic=True)
+        return action
+
+
+class OnnxAgent:
+    """An ONNX policy run with onnxruntime: loading it runs no code from the file.
+
+    Expected graph: inputs named ``state`` (float32 ``[batch, 17]``) and, for vision policies, ``depth``
+    (float32 ``[batch, 1, 64, 64]``); the first output is the action (float32 ``[batch, 4]``). A recurrent
+    policy adds an input ``hidden`` (float32 ``[batch, H]``, zeros at episode start) and a second output,
+    the next hidden state.
+    """
+
+    privileged = False
+
+    def __init__(self, path: str | Path) -> None:
+        import onnxruntime as ort
+
+        path = Path(path)
+        if not path.is_file():
+            raise AgentLoadError(f"ONNX file {str(path)!r} does not exist")
+        try:
+            self.session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own exception types
+            raise AgentLoadError(f"ONNX file {str(path)!r} could not be loaded: {exc}") from exc
+        self.inputs = {i.name: i for i in self.session.get_inputs()}
+        if "state" not in self.inputs:
+            raise AgentLoadError(f"ONNX file {str(path)!r} has no input named 'state' (inputs: {list(self.inputs)})")
+        self.name = path.stem
+        self.obs_mode = "vision" if "depth" in self.inputs else "state"
+        self.hidden_size = self.inputs["hidden"].shape[-1] if "hidden" in self.inputs else None
+        self.hidden: np.ndarray | None = None
+
+    def reset(self, env: Any = None, seed: int | None = None) -> None:
+        """Zero the hidden state of a recurrent policy."""
+        self.hidden = None if self.hidden_size is None else np.zeros((1, self.hidden_size), dtype=np.float32)
+
+    def act(self, obs: Any) -> np.ndarray:
+        """Run the graph on one observation."""
+        if self.obs_mode == "vision":
+            feed = {"state": obs["state"][None].astype(np.float32), "depth": obs["depth"][None].astype(np.float32)}
+        else:
+            feed = {"state": np.asarray(obs, dtype=np.float32)[None]}
+        if self.hidden is not None:
+            feed["hidden"] = self.hidden
+        outputs = self.session.run(None, feed)
+        if self.hidden is not None:
+            self.hidden = outputs[1]
+        return outputs[0][0]
+
+
+def export_onnx(model: Any, path: str | Path) -> Path:
+    """Export the deterministic actor of a feed-forward SB3 actor-critic policy to ONNX (see :class:`OnnxAgent`)."""
+    import torch
+
+    policy = model.policy.to("cpu").eval()
+    vision = _obs_mode_of(model.observation_space) == "vision"
+
+    class Actor(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.policy = policy
+
+        def forward(self, state: torch.Tensor, depth: torch.Tensor | None = None) -> torch.Tensor:
+            obs = {"state": state, "depth": depth} if vision else state
+            features = self.policy.extract_features(obs, self.policy.pi_features_extractor)
+            latent = self.policy.mlp_extractor.forward_actor(features)
+            return torch.clamp(self.policy.action_net(latent), -1.0, 1.0)
+
+    state = torch.zeros(1, 17)
+    args: tuple = (state, torch.zeros(1, 1, 64, 64)) if vision else (state,)
+    names = ["state", "depth"] if vision else ["state"]
+    path = Path(path)
+    torch.onnx.export(
+        Actor(),
+        args,
+        str(path),
+        input_names=names,
+        output_names=["action"],
+        dynamic_axes={n: {0: "batch"} for n in [*names, "action"]},
+        dynamo=False,
+    )
+    return path
+
+
+def _python_agent(spec: str) -> Any:
+    target, _, cls_name = spec.rpartition(":")
+    try:
+        if target.endswith(".py"):
+            file = Path(target)
+            if not file.is_file():
+                raise AgentLoadError(f"agent spec {spec!r}: file {target!r} does not exist")
+            module_spec = importlib.util.spec_from_file_location(file.stem, file)
+            module = importlib.util.module_from_spec(module_spec)
+            module_spec.loader.exec_module(module)
+        else:
+            module = importlib.import_module(target)
+    except AgentLoadError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - report any import failure with the spec
+        raise AgentLoadError(f"agent spec {spec!r}: cannot import {target!r}: {exc}") from exc
+    cls = getattr(module, cls_name, None)
+    if cls is None:
+        raise AgentLoadError(f"agent spec {spec!r}: {target!r} has no attribute {cls_name!r}")
+    agent = cls()
+    for attr in ("reset", "act"):
+        if not callable(getattr(agent, attr, None)):
+            raise AgentLoadError(f"agent spec {spec!r}: {cls_name} has no method {attr}()")
+    agent.name = getattr(agent, "name", cls_name)
+    agent.obs_mode = getattr(agent, "obs_mode", "vision")
+    agent.privileged = getattr(agent, "privileged", False)
+    if agent.obs_mode not in ("vision", "state"):
+        raise AgentLoadError(f"agent spec {spec!r}: obs_mode must be 'vision' or 'state', got {agent.obs_mode!r}")
+    return agent
+
+
+def load_agent(spec: str) -> Agent:
+    """Build an agent from a spec string (see the module docstring)."""
+    if spec == "random":
+        return RandomAgent()
+    if spec == "hover":
+        return HoverAgent()
+    if spec == "planner":
+        from racebench.planner import PlannerAgent
+
+        return PlannerAgent()
+    if spec == "follow":
+        return FollowAgent()
+    if spec.endswith(".zip"):
+        return SB3Agent(spec)
+    if spec.endswith(".onnx"):
+        return OnnxAgent(spec)
+    if ":" in spec:
+        return _python_agent(spec)
+    raise AgentLoadError(
+        f"unknown agent spec {spec!r}: expected one of {BUILTIN_AGENTS}, a .zip (SB3) or .onnx file, or module:Class"
+    )

@@ -1,0 +1,154 @@
+"""The paper's tables, regenerated from summary CSVs alone, as Markdown or LaTeX (booktabs).
+
+* Table II: lap time (LT, mean over successful laps) and success rate (SR) per track, one row per agent;
+* Table III: SR per track for the ablation agents (same layout as Table II's SR half);
+* Table IV: SR per track against obstacle density (2–5) and against gate shift (±0.3–±1.0 m).
+
+SR cells show the percentage and, by default, the 95 % Wilson interval. The best value of each column
+among non-privileged agents is bold; privileged agents (e.g. the planner) are marked and never bolded,
+they are a reference, not a competitor.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+
+from racebench.evaluation import TRACK_ORDER
+from racebench.registration import DENSITIES, GATE_SHIFTS
+
+TRACK_NAMES: dict[str, str] = {"S": "S-shaped", "Circle": "3D Circle", "J": "J-shaped"}
+TABLES: tuple[str, ...] = ("II", "III", "IV")
+
+
+def _agent_label(agent: str, privileged: bool) -> str:
+    return f"{agent} (privileged)" if privileged else agent
+
+
+def _sr_text(row: pd.Series | None, ci: bool) -> str:
+    if row is None:
+        return "–"
+    text = f"{100 * row['success_rate']:.0f}"
+    if ci:
+        text += f" [{100 * row['sr_ci_low']:.0f}–{100 * row['sr_ci_high']:.0f}]"
+    return text
+
+
+def _lt_text(row: pd.Series | None) -> str:
+    if row is None or not math.isfinite(row["lap_time_mean"]):
+        return "–"
+    return f"{row['lap_time_mean']:.2f}"
+
+
+def _lookup(summary: pd.DataFrame, agent: str, track: str, variant: str) -> pd.Series | None:
+    hit = summary[(summary["agent"] == agent) & (summary["track"] == track) & (summary["variant"] == variant)]
+    return None if hit.empty else hit.iloc[0]
+
+
+def _agents(summary: pd.DataFrame) -> list[tuple[str, bool]]:
+    order = summary.drop_duplicates("agent")[["agent", "privileged"]]
+    # Learned agents first (as in the paper), privileged references last.
+    return sorted(((str(a), bool(p)) for a, p in order.itertuples(index=False)), key=lambda x: (x[1], x[0]))
+
+
+def _best(values: dict[str, float], privileged: dict[str, bool], lower_is_better: bool) -> set[str]:
+    candidates = {a: v for a, v in values.items() if not privileged[a] and v is not None and math.isfinite(v)}
+    if not candidates:
+        return set()
+    target = (min if lower_is_better else max)(candidates.values())
+    return {a for a, v in candidates.items() if v == target}
+
+
+def table_ii(summary: pd.DataFrame, ci: bool = True, lap_time: bool = True) -> tuple[pd.DataFrame, set]:
+    """Table II (or, with ``lap_time=False``, Table III): cells as text plus the set of bold cells."""
+    agents = _agents(summary)
+    privileged = dict(agents)
+    columns: dict[str, dict[str, str]] = {}
+    bold: set[tuple[str, str]] = set()
+    groups = ([("LT [s]", True)] if lap_time else []) + [("SR [%]", False)]
+    for title, is_lt in groups:
+        for track in TRACK_ORDER:
+            col = f"{title} {TRACK_NAMES[track]}"
+            rows = {a: _lookup(summary, a, track, "default") for a, _ in agents}
+            columns[col] = {a: (_lt_text(r) if is_lt else _sr_text(r, ci)) for a, r in rows.items()}
+            key = "lap_time_mean" if is_lt else "success_rate"
+            values = {a: (None if r is None else float(r[key])) for a, r in rows.items()}
+            bold |= {(a, col) for a in _best(values, privileged, lower_is_better=is_lt)}
+    labels = {a: _agent_label(a, p) for a, p in agents}
+    frame = pd.DataFrame(columns, index=[a for a, _ in agents]).rename(index=labels)
+    return frame, {(labels[a], col) for a, col in bold}
+
+
+def table_iv(summary: pd.DataFrame, ci: bool = True) -> tuple[pd.DataFrame, set]:
+    """Table IV: SR per track vs density and vs gate shift, one column per agent × track."""
+    agents = _agents(summary)
+    privileged = dict(agents)
+    variants = [(f"Density {d}", f"Density{d}") for d in DENSITIES] + [
+        (f"Gate ±{s} m", f"GateShift{s}") for s in GATE_SHIFTS
+    ]
+    columns: dict[str, dict[str, str]] = {}
+    bold: set[tuple[str, str]] = set()
+    for agent, priv in agents:
+        for track in TRACK_ORDER:
+            col = f"{_agent_label(agent, priv)} {TRACK_NAMES[track]}"
+            columns[col] = {label: _sr_text(_lookup(summary, agent, track, v), ci) for label, v in variants}
+    # Bold: for each row and track, the best non-privileged agent.
+    for label, variant in variants:
+        for track in TRACK_ORDER:
+            values = {}
+            for agent, _ in agents:
+                row = _lookup(summary, agent, track, variant)
+                values[agent] = None if row is None else float(row["success_rate"])
+            for agent in _best(values, privileged, lower_is_better=False):
+                bold.add((label, f"{_agent_label(agent, privileged[agent])} {TRACK_NAMES[track]}"))
+    return pd.DataFrame(columns, index=[label for label, _ in variants]), bold
+
+
+def _latex_escape(text: str) -> str:
+    for char, repl in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#")):
+        text = text.replace(char, repl)
+    return text.replace("±", r"$\pm$").replace("–", "--")
+
+
+def render(frame: pd.DataFrame, bold: set, fmt: str, caption: str) -> str:
+    """A table as Markdown (``fmt="md"``) or LaTeX booktabs (``fmt="latex"``), bold cells emphasised."""
+    if fmt not in ("md", "latex"):
+        raise ValueError(f"format must be 'md' or 'latex', got {fmt!r}")
+    cells = frame.copy().astype(object)
+    for row, col in bold:
+        if row in cells.index and col in cells.columns:
+            value = str(cells.loc[row, col])
+            cells.loc[row, col] = f"**{value}**" if fmt == "md" else rf"\textbf{{{_latex_escape(value)}}}"
+    if fmt == "md":
+        return f"**{caption}**\n\n" + cells.to_markdown() + "\n"
+    escaped = cells.map(lambda v: v if str(v).startswith(r"\textbf") else _latex_escape(str(v)))
+    escaped.index = [_latex_escape(str(i)) for i in escaped.index]
+    escaped.columns = [_latex_escape(str(c)) for c in escaped.columns]
+    body = escaped.style.to_latex(hrules=True, column_format="l" + "c" * len(escaped.columns))
+    return (
+        "\\begin{table}[t]\n\\centering\n"
+        f"\\caption{{{_latex_escape(caption)}}}\n{body}\\end{{table}}\n"
+    )
+
+
+def make_table(summary: pd.DataFrame, which: str, fmt: str = "md", ci: bool = True) -> str:
+    """Table ``II``, ``III`` or ``IV`` of the paper from a summary DataFrame."""
+    which = which.upper()
+    if which == "II":
+        frame, bold = table_ii(summary, ci=ci, lap_time=True)
+        caption = "Table II: lap time (mean over successful laps) and success rate per track."
+    elif which == "III":
+        frame, bold = table_ii(summary, ci=ci, lap_time=False)
+        caption = "Table III: success rate of the ablations per track."
+    elif which == "IV":
+        frame, bold = table_iv(summary, ci=ci)
+        caption = "Table IV: success rate vs obstacle density (per 2 gates) and vs gate shift."
+    else:
+        raise ValueError(f"unknown table {which!r}; choose from {TABLES}")
+    if frame.empty or frame.isin(["–"]).all().all():
+        raise ValueError(f"no results for Table {which} in the given summaries")
+    if ci:
+        caption += " SR in % with 95% Wilson interval in brackets."
+    caption += " Bold: best non-privileged agent."
+    return render(frame, bold, fmt, caption)
