@@ -209,3 +209,4 @@ class Simulation:
             self.client.disconnect()
         except p.error:
             pass
+        self.client._client = -1  # so BulletClient.__del__ does not disconnect again at interpreter exit

@@ -1,0 +1,285 @@
+"""The evaluator: statistics, resumable sweeps, failing agents, loaders, tables."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pandas as pd
+import pytest
+
+from racebench.agents import AgentLoadError, OnnxAgent, SB3Agent, export_onnx, load_agent
+from racebench.evaluation import (
+    EVAL_SEED_BASE,
+    SUITES,
+    Evaluator,
+    eval_seeds,
+    load_records,
+    resolve_envs,
+    split_env_id,
+    wilson_interval,
+)
+from racebench.tables import make_table
+
+# ------------------------------------------------------------------ statistics
+
+
+@pytest.mark.parametrize(
+    "k, n, low, high",
+    [
+        # Newcombe (1998), Statistics in Medicine 17:857, Table I, method 3 (Wilson score, no correction).
+        (81, 263, 0.2553, 0.3662),
+        (15, 148, 0.0624, 0.1605),
+        (0, 20, 0.0000, 0.1611),
+        (1, 29, 0.0061, 0.1718),
+        # The paper's 10 trials: 10/10 and 0/10.
+        (10, 10, 0.7225, 1.0000),
+        (0, 10, 0.0000, 0.2775),
+    ],
+)
+def test_wilson_interval_matches_textbook_values(k: int, n: int, low: float, high: float) -> None:
+    got = wilson_interval(k, n)
+    assert got == pytest.approx((low, high), abs=6e-5)
+
+
+def test_seed_protocol_and_suites() -> None:
+    assert eval_seeds(3) == [EVAL_SEED_BASE, EVAL_SEED_BASE + 1, EVAL_SEED_BASE + 2]
+    assert resolve_envs(["main"]) == ["RaceObs-S-v0", "RaceObs-Circle-v0", "RaceObs-J-v0"]
+    assert len(resolve_envs(["paper"])) == 3 + 12 + 12
+    assert len(SUITES["density"]) == 12 and len(SUITES["gates"]) == 12
+    assert split_env_id("RaceObs-J-GateShift0.7-v0") == ("J", "GateShift0.7")
+    assert split_env_id("RaceObs-Circle-v0") == ("Circle", "default")
+    with pytest.raises(ValueError, match="unknown env id or suite 'RaceObs-X-v0'"):
+        resolve_envs(["RaceObs-X-v0"])
+
+
+# -------------------------------------------------------------- failing agents
+
+BAD_AGENTS = textwrap.dedent(
+    """
+    import numpy as np
+
+    class Raises:
+        obs_mode = "state"
+        def reset(self, env=None, seed=None):
+            self.t = 0
+        def act(self, obs):
+            self.t += 1
+            if self.t > 3:
+                raise RuntimeError("policy exploded")
+            return np.zeros(4)
+
+    class ReturnsNaN:
+        obs_mode = "state"
+        def reset(self, env=None, seed=None):
+            pass
+        def act(self, obs):
+            return np.array([0.0, np.nan, 0.0, 0.0])
+
+    class WrongShape:
+        obs_mode = "vision"
+        def reset(self, env=None, seed=None):
+            pass
+        def act(self, obs):
+            assert obs["depth"].shape == (1, 64, 64)
+            return np.zeros(3)
+
+    class NoAct:
+        def reset(self, env=None, seed=None):
+            pass
+    """
+)
+
+
+@pytest.fixture()
+def bad_agents(tmp_path: Path) -> Path:
+    path = tmp_path / "bad_agents.py"
+    path.write_text(BAD_AGENTS)
+    return path
+
+
+@pytest.mark.parametrize(
+    "cls, reason",
+    [("Raises", "act raised RuntimeError: policy exploded"), ("ReturnsNaN", "not finite"), ("WrongShape", "shape")],
+)
+def test_failing_agent_fails_its_episodes_and_the_sweep_goes_on(
+    tmp_path: Path, bad_agents: Path, cls: str, reason: str
+) -> None:
+    out = tmp_path / "out"
+    summary = Evaluator(f"{bad_agents}:{cls}", ["RaceObs-S-Level1-v0"], episodes=2, out_dir=out).run(progress=False)
+    assert summary["n"].tolist() == [2] and summary["successes"].tolist() == [0]
+    episodes = pd.read_csv(out / "episodes.csv")
+    assert (episodes["crash_reason"] == "agent_error").all()
+    assert episodes["error"].str.contains(reason).all()
+
+
+def test_bad_agent_specs_are_named(tmp_path: Path, bad_agents: Path) -> None:
+    with pytest.raises(AgentLoadError, match="unknown agent spec 'pilot'"):
+        load_agent("pilot")
+    with pytest.raises(AgentLoadError, match="no method act"):
+        load_agent(f"{bad_agents}:NoAct")
+    with pytest.raises(AgentLoadError, match="has no attribute 'Nope'"):
+        load_agent(f"{bad_agents}:Nope")
+    with pytest.raises(AgentLoadError, match="does not exist"):
+        load_agent(str(tmp_path / "missing.zip"))
+    corrupt = tmp_path / "corrupt.zip"
+    corrupt.write_bytes(b"PK\x03\x04 this is not really a checkpoint")
+    with pytest.raises(AgentLoadError, match="corrupt.zip"):
+        load_agent(str(corrupt))
+    broken_onnx = tmp_path / "broken.onnx"
+    broken_onnx.write_bytes(b"\x00\x01garbage")
+    with pytest.raises(AgentLoadError, match="broken.onnx"):
+        load_agent(str(broken_onnx))
+
+
+# --------------------------------------------------------------------- resume
+
+
+def test_resume_skips_finished_episodes(tmp_path: Path) -> None:
+    out = tmp_path / "sweep"
+    first = Evaluator("hover", ["RaceObs-S-Level1-v0"], episodes=2, out_dir=out)
+    first.run(progress=False)
+    records = sorted((out / "records").iterdir())
+    stamps = {p.name: p.stat().st_mtime_ns for p in records}
+    second = Evaluator("hover", ["RaceObs-S-Level1-v0"], episodes=3, out_dir=out)
+    assert second.pending() == [("RaceObs-S-Level1-v0", EVAL_SEED_BASE + 2)]
+    second.run(progress=False)
+    assert {p.name: p.stat().st_mtime_ns for p in records} == stamps  # finished episodes untouched
+    assert len(pd.read_csv(out / "episodes.csv")) == 3
+
+
+def test_a_killed_sweep_loses_only_the_episode_in_flight(tmp_path: Path) -> None:
+    out = tmp_path / "killed"
+    script = (
+        "from racebench.evaluation import Evaluator\n"
+        f"Evaluator('planner', ['RaceObs-S-Level1-v0'], episodes=40, out_dir={str(out)!r}).run(progress=False)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script], start_new_session=True)
+    records = out / "records"
+    deadline = time.time() + 120
+    while time.time() < deadline and len(list(records.glob("*.json"))) < 2:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = list(records.glob("*.json"))
+    assert 2 <= len(done) < 40, "the sweep should have been killed part-way"
+    for record in done:
+        json.loads(record.read_text())  # every record on disk is whole
+    resumed = Evaluator("planner", ["RaceObs-S-Level1-v0"], episodes=len(done) + 1, out_dir=out)
+    assert len(resumed.pending()) == 1
+    resumed.run(progress=False)
+    frame = load_records(out)
+    assert len(frame) == len(done) + 1 and frame["seed"].is_unique
+
+
+# -------------------------------------------------------------------- loaders
+
+
+@pytest.fixture(scope="module")
+def tiny_ppo(tmp_path_factory: pytest.TempPathFactory):
+    from stable_baselines3 import PPO
+
+    env = gym.make("RaceObs-S-Level1-v0", obs_mode="state")
+    model = PPO("MlpPolicy", env, n_steps=64, batch_size=32, n_epochs=1, seed=0,
+                policy_kwargs={"net_arch": [16]}, device="cpu")  # fmt: skip
+    model.learn(128)
+    path = tmp_path_factory.mktemp("ppo") / "tiny_ppo.zip"
+    model.save(path)
+    return model, path
+
+
+def test_sb3_checkpoint_round_trip(tiny_ppo) -> None:
+    model, path = tiny_ppo
+    agent = load_agent(str(path))
+    assert isinstance(agent, SB3Agent) and agent.obs_mode == "state" and agent.name == "tiny_ppo"
+    obs = np.random.default_rng(0).uniform(-1, 1, size=(5, 17)).astype(np.float32)
+    agent.reset()
+    for o in obs:
+        np.testing.assert_array_equal(agent.act(o), model.predict(o, deterministic=True)[0])
+
+
+def test_onnx_export_round_trip(tiny_ppo, tmp_path: Path) -> None:
+    model, _ = tiny_ppo
+    path = export_onnx(model, tmp_path / "tiny.onnx")
+    agent = load_agent(str(path))
+    assert isinstance(agent, OnnxAgent) and agent.obs_mode == "state"
+    agent.reset()
+    for o in np.random.default_rng(1).uniform(-1, 1, size=(5, 17)).astype(np.float32):
+        np.testing.assert_allclose(agent.act(o), model.predict(o, deterministic=True)[0], atol=1e-5)
+
+
+def test_recurrent_sb3_checkpoint_carries_state(tmp_path: Path) -> None:
+    from sb3_contrib import RecurrentPPO
+
+    env = gym.make("RaceObs-S-Level1-v0", obs_mode="state")
+    model = RecurrentPPO("MlpLstmPolicy", env, n_steps=32, batch_size=32, n_epochs=1, seed=0,
+                         policy_kwargs={"lstm_hidden_size": 8, "net_arch": [8]}, device="cpu")  # fmt: skip
+    model.learn(32)
+    model.save(tmp_path / "lstm.zip")
+    agent = load_agent(str(tmp_path / "lstm.zip"))
+    assert agent.recurrent
+    obs = np.random.default_rng(2).uniform(-1, 1, size=(4, 17)).astype(np.float32)
+    agent.reset()
+    first = [agent.act(o) for o in obs]
+    agent.reset()
+    again = [agent.act(o) for o in obs]
+    np.testing.assert_array_equal(np.array(first), np.array(again))  # reset clears the memory
+    state, starts, expected = None, np.ones((1,), dtype=bool), []
+    for o in obs:
+        action, state = model.predict(o, state=state, episode_start=starts, deterministic=True)
+        starts = np.zeros((1,), dtype=bool)
+        expected.append(action)
+    np.testing.assert_array_equal(np.array(first), np.array(expected))
+
+
+# -------------------------------------------------------------------- planner
+
+
+@pytest.mark.parametrize("env_id", ["RaceObs-S-v0", "RaceObs-J-v0", "RaceObs-Circle-v0"])
+def test_privileged_planner_flies_the_default_tracks(tmp_path: Path, env_id: str) -> None:
+    summary = Evaluator("planner", [env_id], episodes=5, out_dir=tmp_path).run(progress=False)
+    assert summary["privileged"].all()
+    assert summary["successes"].iloc[0] >= 4, summary.to_dict("records")
+
+
+# --------------------------------------------------------------------- tables
+
+FIXED_SUMMARY = """agent,privileged,env_id,track,variant,n,successes,success_rate,sr_ci_low,sr_ci_high,lap_time_median,lap_time_mean,lap_time_std
+ours,False,RaceObs-S-v0,S,default,10,10,1.0,0.7225,1.0,3.4,3.4,0.1
+ours,False,RaceObs-Circle-v0,Circle,default,10,9,0.9,0.5958,0.9821,3.6,3.6,0.1
+ours,False,RaceObs-J-v0,J,default,10,10,1.0,0.7225,1.0,2.9,2.9,0.1
+state,False,RaceObs-S-v0,S,default,10,3,0.3,0.1078,0.6032,3.5,3.5,0.1
+state,False,RaceObs-Circle-v0,Circle,default,10,2,0.2,0.0567,0.5098,3.8,3.5,0.1
+state,False,RaceObs-J-v0,J,default,10,3,0.3,0.1078,0.6032,3.1,3.1,0.1
+planner,True,RaceObs-S-v0,S,default,10,10,1.0,0.7225,1.0,5.9,5.9,0.1
+"""
+
+EXPECTED_TABLE_II = """**Table II: lap time (mean over successful laps) and success rate per track. Bold: best non-privileged agent.**
+
+|                      | LT [s] S-shaped   | LT [s] 3D Circle   | LT [s] J-shaped   | SR [%] S-shaped   | SR [%] 3D Circle   | SR [%] J-shaped   |
+|:---------------------|:------------------|:-------------------|:------------------|:------------------|:-------------------|:------------------|
+| ours                 | **3.40**          | 3.60               | **2.90**          | **100**           | **90**             | **100**           |
+| state                | 3.50              | **3.50**           | 3.10              | 30                | 20                 | 30                |
+| planner (privileged) | 5.90              | –                  | –                 | 100               | –                  | –                 |
+"""
+
+
+def test_table_ii_from_a_fixed_csv(tmp_path: Path) -> None:
+    path = tmp_path / "summary.csv"
+    path.write_text(FIXED_SUMMARY)
+    assert make_table(pd.read_csv(path), "II", "md", ci=False) == EXPECTED_TABLE_II
+
+
+def test_table_latex_is_booktabs_with_bold_and_ci(tmp_path: Path) -> None:
+    text = make_table(pd.read_csv(__import__("io").StringIO(FIXED_SUMMARY)), "III", "latex", ci=True)
+    assert "\\toprule" in text and "\\midrule" in text and "\\bottomrule" in text
+    assert "\\textbf{90 [60--98]}" in text
+    assert "planner (privileged)" in text
