@@ -174,7 +174,7 @@ class RaceEnv(gym.Env):
         self.drone = self.sim.drone_state()
         self.next_gate = 0
         self.steps = 0
-        self.time = 0.0
+        self.ticks = 0  # physics steps this episode; time = ticks / physics_freq, exactly
         self.lap_time: float | None = None
         self.crash_reason: str | None = None
         self.prev_action = np.array([self.params.hover_action, 0.0, 0.0, 0.0])
@@ -202,7 +202,7 @@ class RaceEnv(gym.Env):
             force = self.quad.drag_force(rot.T @ vel)
             force[2] += thrust
             self.sim.step(rot @ force, rot @ torque, pos)
-            self.time += self.dt
+            self.ticks += 1
             self.drone = self.sim.drone_state()
             new_pos = self.drone.position
             crash = self.sim.contact() or self._out_of_bounds(new_pos)
@@ -238,6 +238,11 @@ class RaceEnv(gym.Env):
         terminated = crash is not None or self.lap_time is not None
         truncated = not terminated and self.steps >= self.max_steps
         return self._observation(), float(sum(terms.values())), terminated, truncated, self._info(terms)
+
+    @property
+    def time(self) -> float:
+        """Simulated time since reset, s."""
+        return self.ticks / self.physics_freq
 
     def _out_of_bounds(self, pos: np.ndarray) -> str | None:
         inside = np.all(pos >= self.scene.arena_low) and np.all(pos <= self.scene.arena_high)
