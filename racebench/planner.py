@@ -18,12 +18,20 @@ import numpy as np
 
 from racebench.control import GateFollower, acceleration_to_ctbr
 from racebench.obstacles import find_corridor
+from racebench.reward import wrap_angle
 
 
 def speed_profile(
-    points: np.ndarray, arc: np.ndarray, v_max: float, lateral_accel: float, decel: float, v_min: float = 0.6
+    points: np.ndarray,
+    arc: np.ndarray,
+    v_max: float,
+    lateral_accel: float,
+    decel: float,
+    v_min: float = 0.6,
+    end_speed: float = 0.3,
 ) -> np.ndarray:
-    """Speed along a resampled path: limited by curvature (``v² κ ≤ a_lat``) and by braking ahead of turns."""
+    """Speed along a resampled path: limited by curvature (``v² κ ≤ a_lat``), by braking ahead of turns and
+    to ``end_speed`` at the end."""
     ds = float(arc[1] - arc[0]) if len(arc) > 1 else 1.0
     span = max(1, int(round(0.3 / ds)))  # estimate curvature over ±0.3 m: grid corners are sharp
     direction = np.diff(points, axis=0, append=points[-1:] + (points[-1:] - points[-2:-1]))
@@ -33,9 +41,23 @@ def speed_profile(
     turn = np.arccos(np.clip(np.sum(ahead * behind, axis=1), -1.0, 1.0))
     curvature = turn / (2 * span * ds)
     v = np.clip(np.sqrt(lateral_accel / np.maximum(curvature, 1e-9)), v_min, v_max)
+    v[-1] = min(v[-1], end_speed)
     for i in range(len(v) - 2, -1, -1):  # brake in time for what comes
         v[i] = min(v[i], math.sqrt(v[i + 1] ** 2 + 2 * decel * (arc[i + 1] - arc[i])))
     return v
+
+
+def split_at_cusps(polyline: np.ndarray, max_turn: float = 2.0) -> list[np.ndarray]:
+    """Split a polyline where it doubles back (turn > ``max_turn`` rad): each piece is flown to its end."""
+    pieces, start = [], 0
+    for i in range(1, len(polyline) - 1):
+        a, b = polyline[i] - polyline[i - 1], polyline[i + 1] - polyline[i]
+        cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-12)
+        if math.acos(max(-1.0, min(1.0, cos))) > max_turn:
+            pieces.append(polyline[start : i + 1])
+            start = i
+    pieces.append(polyline[start:])
+    return [p for p in pieces if len(p) >= 2]
 
 
 def resample(polyline: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
@@ -98,8 +120,19 @@ class PlannerAgent:
         if polyline is None:
             self.path = None
             return
-        self.path, self.arc = resample(polyline, 0.05)
-        self.speeds = speed_profile(self.path, self.arc, self.speed, self.max_lateral_accel, self.max_decel)
+        # Cusps (the corridor doubles back, e.g. around a gate approached from behind) split the path into
+        # pieces that are each flown to their end, so the tracker never cuts a hairpin short.
+        self.pieces = []
+        for piece in split_at_cusps(polyline):
+            points, arc = resample(piece, 0.05)
+            speeds = speed_profile(points, arc, self.speed, self.max_lateral_accel, self.max_decel)
+            self.pieces.append((points, arc, speeds))
+        self._piece = -1
+        self._next_piece()
+
+    def _next_piece(self) -> None:
+        self._piece += 1
+        self.path, self.arc, self.speeds = self.pieces[self._piece]
         self._index = 0
 
     def act(self, obs=None) -> np.ndarray:
@@ -113,7 +146,11 @@ class PlannerAgent:
         # never a jump, or a hairpin could be skipped together with the gate passage inside it.
         window = self.path[self._index : self._index + 9]
         self._index += int(np.argmin(np.linalg.norm(window - pos, axis=1)))
-        speed = float(self.speeds[self._index])
+        if self._piece + 1 < len(self.pieces) and np.linalg.norm(self.path[-1] - pos) < 0.15:
+            self._next_piece()
+        # Anticipate: the slowest profile speed over the next 0.25 s, since the velocity loop lags.
+        horizon = 1 + int(0.25 * float(self.speeds[self._index]) / 0.05)
+        speed = float(self.speeds[self._index : self._index + horizon].min())
         s = self.arc[self._index]
         # Carrot distance grows with speed: tight at slow corners, smooth on straights.
         ahead = self.lookahead + 0.15 * speed
@@ -122,5 +159,9 @@ class PlannerAgent:
         dist = float(np.linalg.norm(to_carrot))
         v_ref = to_carrot / max(dist, 1e-6) * speed
         accel = self.velocity_gain * (v_ref - vel)
-        heading = v_ref if np.linalg.norm(v_ref[:2]) > 0.5 else state.rotation[:, 0]
-        return acceleration_to_ctbr(accel, math.atan2(heading[1], heading[0]), state.rotation, env.params)
+        # Turn toward the direction of travel, but by at most 0.5 rad of error at a time: a large yaw error
+        # couples into roll and pitch, and the privileged planner needs no camera pointing.
+        yaw = math.atan2(state.rotation[1, 0], state.rotation[0, 0])
+        if np.linalg.norm(v_ref[:2]) > 0.5:
+            yaw += float(np.clip(wrap_angle(math.atan2(v_ref[1], v_ref[0]) - yaw), -0.5, 0.5))
+        return acceleration_to_ctbr(accel, yaw, state.rotation, env.params)
