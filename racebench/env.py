@@ -151,6 +151,7 @@ class RaceEnv(gym.Env):
         )
         self.sim = Simulation(self.track, self.params, physics_freq)
         self.scene: Scene | None = None  # geometry of the current episode (plain data)
+        self.layout: Scene | None = None  # when set, every reset uses its gates and obstacles (set_layout)
         self.drone: DroneState | None = None  # current kinematic state of the drone
         self._rate_scale = np.asarray(self.params.max_body_rate, dtype=float)
 
@@ -163,7 +164,12 @@ class RaceEnv(gym.Env):
         if unknown:
             raise ValueError(f"reset: unknown option {unknown[0]!r} (known: ['scene'])")
         scene = options.get("scene")
-        if scene is None:
+        if scene is None and self.layout is not None:
+            # Shared layout (multi-scene training): gates and obstacles fixed, start pose drawn per episode.
+            spread = self.track.start.spread
+            start = self.track.start.center + self.np_random.uniform(-spread, spread)
+            scene = dataclasses.replace(self.layout, start_position=start)
+        elif scene is None:
             scene = self.generator.sample_scene(self.np_random)
         elif not isinstance(scene, Scene):
             raise ValueError(f"reset: options['scene'] must be a racebench Scene, got {type(scene).__name__}")
@@ -238,6 +244,43 @@ class RaceEnv(gym.Env):
         terminated = crash is not None or self.lap_time is not None
         truncated = not terminated and self.steps >= self.max_steps
         return self._observation(), float(sum(terms.values())), terminated, truncated, self._info(terms)
+
+    # ------------------------------------------------------------- training
+    def set_task(
+        self,
+        density: int | None = None,
+        desired_speed: float | None = None,
+        reward_weights: dict[str, float] | None = None,
+        gate_shift: float | None = None,
+    ) -> None:
+        """Change the task between episodes (curriculum levels); ``None`` keeps a setting as it is.
+
+        ``reward_weights`` overrides the paper's defaults (not the current weights), like the constructor.
+        """
+        if density is not None or gate_shift is not None:
+            self.generator = ObstacleGenerator(
+                self.track,
+                density=self.generator.density if density is None else density,
+                kind=self.generator.kind,
+                gate_shift=self.generator.gate_shift if gate_shift is None else gate_shift,
+                drone_radius=self.params.collision_radius,
+            )
+        if desired_speed is not None:
+            if not desired_speed > 0:
+                raise ValueError(f"desired_speed must be > 0 m/s, got {desired_speed!r}")
+            self.desired_speed = float(desired_speed)
+        if reward_weights is not None:
+            self.weights = RewardWeights.from_overrides(reward_weights)
+
+    def sample_layout(self) -> Scene:
+        """Draw a new scene from this env's ``np_random`` (for :meth:`set_layout` on a group of envs)."""
+        return self.generator.sample_scene(self.np_random)
+
+    def set_layout(self, layout: Scene | None) -> None:
+        """Fly every following episode in ``layout``'s gates and obstacles (start pose still random)."""
+        if layout is not None and len(layout.gates) != len(self.track.gates):
+            raise ValueError(f"layout has {len(layout.gates)} gates, the track has {len(self.track.gates)}")
+        self.layout = layout
 
     @property
     def time(self) -> float:
