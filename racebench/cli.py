@@ -115,6 +115,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_render.add_argument("--seed", type=int, default=1_000_000)
     p_render.add_argument("--out", default="episode.gif")
 
+    p_train = sub.add_parser("train", help="train a baseline (PPO + GRU, curriculum, multi-scene) from a YAML config")
+    p_train.add_argument("--config", required=True, help="baselines/<name>.yaml")
+    p_train.add_argument("--track", default="S", choices=["S", "J", "Circle"])
+    p_train.add_argument("--steps", type=int, default=200_000, help="environment steps (default 200,000)")
+    p_train.add_argument("--seed", type=int, default=0, help="training seed (< 1,000,000: evaluation seeds are above)")
+    p_train.add_argument("--out", default=None, help="run directory (default runs/<name>-<track>-seed<seed>)")
+    p_train.add_argument("--resume", default=None, help="checkpoint .zip to continue from")
+    p_train.add_argument("--n-envs", type=int, default=None, help="override the config's n_envs")
+    p_train.add_argument("--eval-episodes", type=int, default=10, help="final evaluation episodes (0: none)")
+
     args = parser.parse_args(argv)
     if args.command == "envs":
         print("\n".join(racebench.ENV_IDS))
@@ -133,6 +143,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         json_path.write_text(json.dumps(scene.to_dict(), indent=2))
         env.close()
         print(f"wrote {path} and {json_path}")
+    elif args.command == "train":
+        from racebench.training.train import TrainConfig, train
+
+        try:
+            config = TrainConfig.from_yaml(args.config)
+            if args.n_envs is not None:
+                config.n_envs = args.n_envs
+                config.validate(f"{args.config} with --n-envs {args.n_envs}")
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"racebench train: {exc}") from exc
+        result = train(
+            config, args.track, args.steps, args.seed, args.out, args.resume, eval_episodes=args.eval_episodes
+        )
+        print(json.dumps(result, indent=2))
     elif args.command == "evaluate":
         return _evaluate(args)
     elif args.command == "table":

@@ -1,0 +1,1 @@
+"""Training: the paper's PPO + GRU policy, curriculum and multi-scene updating (``racebench train``)."""

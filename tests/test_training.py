@@ -1,0 +1,198 @@
+"""Training pipeline: configs, curriculum, multi-scene groups, the GRU policy, checkpoints, smoke runs."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from racebench.agents import SB3Agent
+from racebench.registration import CURRICULUM
+from racebench.training.policies import LSTMShapedGRU
+from racebench.training.train import CurriculumCallback, MultiSceneCallback, TrainConfig, make_model, train
+
+BASELINES = sorted((Path(__file__).parents[1] / "baselines").glob("*.yaml"))
+
+
+def small(config: TrainConfig, **changes) -> TrainConfig:
+    defaults = dict(n_envs=2, n_steps=32, batch_size=32, n_epochs=1, vec_env="dummy", window=4)
+    return dataclasses.replace(config, **{**defaults, **changes})
+
+
+def test_every_baseline_config_loads() -> None:
+    names = {TrainConfig.from_yaml(p).name for p in BASELINES}
+    assert names == {"vision-ppo", "state-ppo", "vision-no-gru", "vision-no-avoid", "vision-one-step", "vision-com"}
+    assert TrainConfig.from_yaml(BASELINES[0].parent / "vision-no-avoid.yaml").level_kwargs(3)["reward_weights"] == {
+        "speed": 0.0,
+        "avoid": 0.0,
+    }
+    one_step = TrainConfig.from_yaml(BASELINES[0].parent / "vision-one-step.yaml")
+    assert one_step.start_level == 3 and not one_step.curriculum
+
+
+def test_bad_configs_are_named(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text("name: x\nlearning_rat: 0.1\n")
+    with pytest.raises(ValueError, match="unknown key 'learning_rat'"):
+        TrainConfig.from_yaml(path)
+    path.write_text("name: x\nobs_mode: lidar\n")
+    with pytest.raises(ValueError, match="obs_mode"):
+        TrainConfig.from_yaml(path)
+    path.write_text("name: x\nn_envs: 3\nn_steps: 10\nbatch_size: 8\n")
+    with pytest.raises(ValueError, match="multiple of batch_size"):
+        TrainConfig.from_yaml(path)
+
+
+class FakeVecEnv:
+    """Records env_method calls, enough for the curriculum callback."""
+
+    num_envs = 4
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, dict]] = []
+
+    def env_method(self, name: str, *args, indices=None, **kwargs):
+        self.calls.append((name, kwargs))
+        return [None]
+
+
+class FakeModel:
+    """What SB3 callbacks read from their model: the env, the step count and a logger."""
+
+    num_timesteps = 0
+
+    def __init__(self, env) -> None:
+        self.env = env
+        self.logger = type("Logger", (), {"record": lambda *args, **kwargs: None})()
+
+    def get_env(self):
+        return self.env
+
+
+def test_curriculum_promotes_on_a_scripted_success_signal() -> None:
+    config = TrainConfig(name="t", window=10, promote_at=0.8)
+    callback = CurriculumCallback(config)
+    fake = FakeVecEnv()
+    callback.init_callback(FakeModel(fake))
+    for success in [True] * 7 + [False] * 3:  # 70 % < 80 %: stays
+        callback.record(success)
+    assert callback.level == 1 and not fake.calls
+    for _ in range(7):  # older successes leave the window as new ones come: still 7/10
+        callback.record(True)
+    assert callback.level == 1
+    callback.record(True)  # the first failure leaves: 8/10
+    assert callback.level == 2
+    assert fake.calls == [("set_task", config.level_kwargs(2))]
+    assert fake.calls[0][1]["density"] == CURRICULUM[2]["density"]
+    for _ in range(9):  # a fresh window is needed after a promotion
+        callback.record(True)
+    assert callback.level == 2
+    callback.record(True)
+    assert callback.level == 3 and fake.calls[-1][1]["reward_weights"] == {"speed": 0.0}
+    for _ in range(30):  # no level past the last
+        callback.record(True)
+    assert callback.level == 3 and [p["level"] for p in callback.promotions] == [2, 3]
+
+
+def test_no_promotion_without_curriculum() -> None:
+    config = TrainConfig(name="t", window=2, curriculum=False, start_level=3)
+    callback = CurriculumCallback(config)
+    callback.init_callback(FakeModel(FakeVecEnv()))
+    for _ in range(10):
+        callback.record(True)
+    assert callback.level == 3 and not callback.promotions
+
+
+def test_scene_groups_share_a_layout_and_change_every_rollout() -> None:
+    config = TrainConfig(name="t", obs_mode="state", scene_groups={1: 2}, start_level=1)
+    env = make_vec_env(
+        "RaceObs-S-v0",
+        n_envs=4,
+        seed=0,
+        vec_env_cls=DummyVecEnv,
+        env_kwargs={"obs_mode": "state", "density": 3},
+    )
+    curriculum = CurriculumCallback(config)
+    callback = MultiSceneCallback(config, curriculum)
+    callback.init_callback(FakeModel(env))
+    assert callback.groups(4) == [[0, 1], [2, 3]]
+    callback._on_rollout_start()
+    layouts = env.get_attr("layout")
+    key = [json.dumps(layout.to_dict()["obstacles"]) for layout in layouts]
+    assert key[0] == key[1] and key[2] == key[3] and key[0] != key[2]
+    env.reset()
+    scenes = env.get_attr("scene")
+    assert json.dumps(scenes[0].to_dict()["obstacles"]) == key[0]
+    assert not np.array_equal(scenes[0].start_position, scenes[1].start_position)  # start poses stay random
+    callback._on_rollout_start()
+    again = [json.dumps(layout.to_dict()["obstacles"]) for layout in env.get_attr("layout")]
+    assert again[0] != key[0] and again[2] != key[2]
+    env.close()
+
+
+def test_gru_with_lstm_signature_resets_with_zero_state() -> None:
+    torch.manual_seed(0)
+    gru = LSTMShapedGRU(5, 7)
+    x = torch.randn(3, 2, 5)
+    zeros = (torch.zeros(1, 2, 7), torch.zeros(1, 2, 7))
+    out, (h, c) = gru(x, zeros)
+    reference, h_ref = torch.nn.GRU.forward(gru, x, zeros[0])
+    assert torch.equal(out, reference) and torch.equal(h, h_ref) and torch.equal(c, zeros[1])
+
+
+def test_gru_policy_state_is_carried_and_reset_at_episode_start() -> None:
+    config = small(TrainConfig(name="t", obs_mode="state"))
+    env = make_vec_env("RaceObs-S-Level1-v0", n_envs=1, env_kwargs={"obs_mode": "state"}, vec_env_cls=DummyVecEnv)
+    model = make_model(config, env, seed=0, tensorboard=None)
+    obs = np.random.default_rng(0).uniform(-1, 1, size=(6, 1, 17)).astype(np.float32)
+    state, start, actions = None, np.ones(1, dtype=bool), []
+    for o in obs:
+        a, state = model.predict(o, state=state, episode_start=start, deterministic=True)
+        start = np.zeros(1, dtype=bool)
+        actions.append(a)
+    # Memory matters: the same observation after a different history gives a different action...
+    fresh, _ = model.predict(obs[-1], state=None, episode_start=np.ones(1, dtype=bool), deterministic=True)
+    assert not np.allclose(fresh, actions[-1])
+    # ...and an episode start clears it, whatever the carried state.
+    reset, _ = model.predict(obs[-1], state=state, episode_start=np.ones(1, dtype=bool), deterministic=True)
+    np.testing.assert_array_equal(reset, fresh)
+    env.close()
+
+
+@pytest.mark.parametrize("config_path", BASELINES, ids=[p.stem for p in BASELINES])
+def test_training_smoke_run(tmp_path: Path, config_path: Path) -> None:
+    config = small(TrainConfig.from_yaml(config_path), n_envs=4, n_steps=64, batch_size=128)
+    result = train(config, "S", steps=2048, seed=0, out=tmp_path, checkpoint_every=1024, eval_episodes=1)
+    assert result["timesteps"] >= 2048 and Path(result["checkpoint"]).is_file()
+    progress = pd.read_csv(tmp_path / "progress.csv")
+    assert len(progress) >= 4 and progress["level"].iloc[0] == config.start_level
+    assert list((tmp_path / "checkpoints").glob("*.zip"))
+    assert (tmp_path / "eval" / "summary.csv").is_file()
+    assert json.loads((tmp_path / "summary.json").read_text())["config"] == config.name
+
+
+def test_checkpoint_save_load_same_actions(tmp_path: Path) -> None:
+    config = small(TrainConfig.from_yaml(BASELINES[0].parent / "vision-ppo.yaml"))
+    result = train(config, "S", steps=64, seed=0, out=tmp_path, eval_episodes=0)
+    agent_a = SB3Agent(result["checkpoint"])
+    agent_b = SB3Agent(result["checkpoint"])
+    assert agent_a.recurrent and agent_a.obs_mode == "vision"
+    rng = np.random.default_rng(0)
+    obs = [
+        {"state": rng.uniform(-1, 1, 17).astype(np.float32), "depth": rng.uniform(0, 1, (1, 64, 64)).astype(np.float32)}
+        for _ in range(5)
+    ]
+    agent_a.reset()
+    agent_b.reset()
+    for o in obs:
+        np.testing.assert_array_equal(agent_a.act(o), agent_b.act(o))
+    # Resume continues from the checkpoint and the saved curriculum level.
+    resumed = train(config, "S", steps=64, seed=0, out=tmp_path, resume=result["checkpoint"], eval_episodes=0)
+    assert resumed["timesteps"] >= 128
