@@ -30,10 +30,12 @@ from racebench.track import Gate, Track
 KINDS: tuple[str, ...] = ("cylinder", "box", "mixed")
 
 _SIX = ndimage.generate_binary_structure(3, 1)  # face-adjacent cells only: the soundness argument needs it
+_APPROACH = 0.25  # gate passages run this far before and after the gate plane (m)
 _SEGMENT_STEP = 0.05  # sample spacing when proving a straight segment clear (m)
-_LEG_MARGIN = 1.5  # xy margin of the local grid around one leg before falling back to the whole arena (m)
+_LEG_MARGIN = 1.0  # margin of the local grid around one leg before falling back to the whole arena (m)
 _CANDIDATES_PER_OBSTACLE = 4  # candidate draws per obstacle, accepted in order (rejection sampling)
 _TOUCH = 1e-6  # "does not touch": footprint distances must exceed this (m)
+_SNAP_OFFSETS = np.stack(np.meshgrid(*[np.arange(-1, 3)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
 _CORNER_SIGNS = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
 
 
@@ -44,7 +46,7 @@ def find_corridor(
     resolution: float = 0.1,
     *,
     start: np.ndarray | None = None,
-    approach: float = 0.25,
+    approach: float = _APPROACH,
     ceiling: float | None = None,
 ) -> np.ndarray | None:
     """A collision-free path for a sphere of ``radius`` from the start through every gate opening in order.
@@ -81,25 +83,27 @@ def _plan_corridor(
     """
     if not radius > 0 or not resolution > 0 or not approach >= 0:
         raise ValueError(f"radius and resolution must be > 0 and approach >= 0, got {radius}, {resolution}, {approach}")
+    if not scene.gates:
+        raise ValueError("the scene has no gates to pass")
     vol_lo = np.array(scene.arena_low, dtype=float)
     vol_hi = np.array(scene.arena_high, dtype=float)
     if ceiling is not None:
         vol_hi[2] = min(vol_hi[2], float(ceiling))
     space = _FreeSpace(scene, radius, resolution, vol_lo, vol_hi)
-    point = np.asarray(scene.track.start.center if start is None else start, dtype=float)
-    if space.clearance(point[None])[0] < radius:
+    origin = np.asarray(scene.track.start.center if start is None else start, dtype=float)
+    fronts = [g.center - approach * g.normal for g in scene.gates]
+    backs = [g.center + approach * g.normal for g in scene.gates]
+    legs = list(zip([origin, *backs[:-1]], fronts, strict=True))
+    # one batched query proves the start, every gate passage and every straight leg at once
+    clear = space.segments_clear([(origin, origin), *zip(fronts, backs, strict=True), *legs])
+    if not np.all(clear[: 1 + len(fronts)]):
         return None
     pieces: list[np.ndarray] = []
-    for gate in scene.gates:
-        front = gate.center - approach * gate.normal
-        back = gate.center + approach * gate.normal
-        if not space.segment_clear(front, back):
-            return None
-        leg = space.leg(point, front, need_path)
+    for (a, b), straight, front, back in zip(legs, clear[1 + len(fronts) :], fronts, backs, strict=True):
+        leg = np.stack([a, b]) if straight else space.grid_leg(a, b, need_path)
         if leg is None:
             return None
         pieces += [leg, np.stack([front, back])]
-        point = back
     return pieces
 
 
@@ -119,24 +123,29 @@ class _FreeSpace:
         walls = np.minimum((points - self.vol_lo).min(axis=-1), (self.vol_hi - points).min(axis=-1))
         return np.minimum(self.scene.distance(points), walls)
 
-    def segment_clear(self, a: np.ndarray, b: np.ndarray) -> bool:
-        """Whether every point of segment ``ab`` is at least ``radius`` from everything (a proof, not a probe)."""
-        length = float(np.linalg.norm(b - a))
-        n = max(2, math.ceil(length / _SEGMENT_STEP) + 1)
-        spacing = length / (n - 1)
-        t = np.linspace(0.0, 1.0, n)[:, None]
-        # any point of the segment is within spacing/2 of a sample, and clearance is 1-Lipschitz
-        return bool(np.all(self.clearance(a + t * (b - a)) >= self.radius + spacing / 2.0))
+    def segments_clear(self, segments: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        """Whether every point of each segment ``(a, b)`` is at least ``radius`` from everything (a proof).
 
-    def leg(self, a: np.ndarray, b: np.ndarray, need_path: bool) -> np.ndarray | None:
-        """A clear polyline from ``a`` to ``b``: straight if possible, else through a local then the full grid."""
-        if self.segment_clear(a, b):
-            return np.stack([a, b])
+        Samples ``s`` apart with clearance ``>= radius + s/2`` suffice: any point of the segment is within
+        ``s/2`` of a sample and clearance is 1-Lipschitz.
+        """
+        lengths = np.array([np.linalg.norm(b - a) for a, b in segments])
+        counts = np.maximum(np.ceil(lengths / _SEGMENT_STEP).astype(int) + 1, 2)
+        spacing = lengths / (counts - 1)
+        owner = np.repeat(np.arange(len(segments)), counts)
+        first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        t = (np.arange(len(owner)) - first[owner]) / (counts[owner] - 1)
+        a = np.array([a for a, _ in segments])
+        b = np.array([b for _, b in segments])
+        samples = a[owner] + t[:, None] * (b - a)[owner]
+        ok = self.clearance(samples) >= self.radius + spacing[owner] / 2.0
+        return np.logical_and.reduceat(ok, first)
+
+    def grid_leg(self, a: np.ndarray, b: np.ndarray, need_path: bool) -> np.ndarray | None:
+        """A clear polyline from ``a`` to ``b`` through a local grid, then through the full one, or ``None``."""
         ends = self.clearance(np.stack([a, b]))
-        lo = np.minimum(a, b) - _LEG_MARGIN
-        hi = np.maximum(a, b) + _LEG_MARGIN
-        lo[2], hi[2] = self.vol_lo[2], self.vol_hi[2]  # the local box spans the whole height
-        lo, hi = np.maximum(lo, self.vol_lo), np.minimum(hi, self.vol_hi)
+        lo = np.maximum(np.minimum(a, b) - _LEG_MARGIN, self.vol_lo)
+        hi = np.minimum(np.maximum(a, b) + _LEG_MARGIN, self.vol_hi)
         path = _Grid(self, lo, hi).connect(a, ends[0], b, ends[1], need_path)
         if path is None and (np.any(lo > self.vol_lo) or np.any(hi < self.vol_hi)):
             # a detour may leave the local box: the whole volume decides
@@ -170,14 +179,9 @@ class _Grid:
         walls = [np.minimum(axes[d] - space.vol_lo[d], space.vol_hi[d] - axes[d]) >= need for d in range(3)]
         free = walls[0][:, None, None] & walls[1][None, :, None] & walls[2][None, None, :]
         # the outermost layer stays blocked so that grid neighbours of a free cell never leave the array
-        free[0], free[-1], free[:, 0], free[:, -1], free[:, :, 0], free[:, :, -1] = (
-            False,
-            False,
-            False,
-            False,
-            False,
-            False,
-        )
+        free[[0, -1]] = False
+        free[:, [0, -1]] = False
+        free[:, :, [0, -1]] = False
         self._rasterise(free, axes, need)
         self.free = free
 
@@ -196,24 +200,28 @@ class _Grid:
             axis=1,
         )
         h = self.space.h
+        top = np.array(self.shape) - 1
         first = np.maximum(np.ceil((centre - reach - need - self.origin) / h - 0.5), 0).astype(int)
-        last = np.minimum(np.floor((centre + reach + need - self.origin) / h - 0.5), np.array(self.shape) - 1).astype(
-            int
-        )
-        for k in np.flatnonzero(np.all(first <= last, axis=1)):
-            (i0, j0, k0), (i1, j1, k1) = first[k], last[k] + 1
-            dx = axes[0][i0:i1, None] - centre[k, 0]
-            dy = axes[1][None, j0:j1] - centre[k, 1]
-            ex = np.maximum(np.abs(cos[k] * dx + sin[k] * dy) - half[k, 0], 0.0)
-            ey = np.maximum(np.abs(cos[k] * dy - sin[k] * dx) - half[k, 1], 0.0)
-            exy = np.maximum(np.hypot(ex, ey) - rounding[k], 0.0)
-            ez = np.maximum(np.abs(axes[2][k0:k1] - centre[k, 2]) - half[k, 2], 0.0)
-            blocked = (exy * exy)[:, :, None] + (ez * ez)[None, None, :] < need * need
-            free[i0:i1, j0:j1, k0:k1] &= ~blocked
-
-    def cell_centre(self, index: int) -> np.ndarray:
-        """World position of the centre of the cell with flat index ``index``."""
-        return self.origin + (np.array(np.unravel_index(index, self.shape)) + 0.5) * self.space.h
+        last = np.minimum(np.floor((centre + reach + need - self.origin) / h - 0.5), top).astype(int)
+        inside = np.flatnonzero(np.all(first <= last, axis=1))
+        if len(inside) == 0:
+            return
+        flat_free = free.reshape(-1)
+        for group in _window_groups(inside, last[inside] - first[inside] + 1):
+            # one padded window per group; cells past a primitive's own range are still computed exactly
+            # (indices clipped into the grid), so padding never blocks a cell wrongly
+            window = (last[group] - first[group] + 1).max(axis=0)
+            idx = [np.minimum(first[group, d, None] + np.arange(window[d]), self.shape[d] - 1) for d in range(3)]
+            c, s_ = cos[group, None, None], sin[group, None, None]
+            dx = axes[0][idx[0]][:, :, None] - centre[group, 0, None, None]
+            dy = axes[1][idx[1]][:, None, :] - centre[group, 1, None, None]
+            ex = np.maximum(np.abs(c * dx + s_ * dy) - half[group, 0, None, None], 0.0)
+            ey = np.maximum(np.abs(c * dy - s_ * dx) - half[group, 1, None, None], 0.0)
+            exy = np.maximum(np.hypot(ex, ey) - rounding[group, None, None], 0.0)
+            ez = np.maximum(np.abs(axes[2][idx[2]] - centre[group, 2, None]) - half[group, 2, None], 0.0)
+            blocked = (exy * exy)[..., None] + (ez * ez)[:, None, None, :] < need * need
+            k, i, j, m = np.nonzero(blocked)
+            flat_free[(idx[0][k, i] * self.shape[1] + idx[1][k, j]) * self.shape[2] + idx[2][k, m]] = False
 
     def snap(self, point: np.ndarray, clearance: float) -> int | None:
         """Flat index of a nearby free cell whose straight link to ``point`` is provably clear, or ``None``.
@@ -224,8 +232,7 @@ class _Grid:
         """
         h = self.space.h
         base = np.floor((point - self.origin) / h - 0.5).astype(int)
-        offsets = np.stack(np.meshgrid(*[np.arange(-1, 3)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-        cells = base + offsets
+        cells = base + _SNAP_OFFSETS
         cells = cells[np.all((cells >= 0) & (cells < np.array(self.shape)), axis=1)]
         if len(cells) == 0:
             return None
@@ -258,20 +265,40 @@ class _Grid:
         return self._shortcut(np.concatenate([a[None], _drop_collinear(centres), b[None]]))
 
     def _shortcut(self, points: np.ndarray) -> np.ndarray:
-        """Replace runs of vertices by straight segments that are proven clear (the original links stay valid)."""
+        """Replace runs of vertices by the longest straight segments proven clear (original links stay valid)."""
         out = [points[0]]
         i, last = 0, len(points) - 1
         while i < last:
-            lo, hi = i + 1, last  # points[i] -> points[i + 1] is an original, already-proven link
-            while lo < hi:
-                mid = (lo + hi + 1) // 2
-                if self.space.segment_clear(points[i], points[mid]):
-                    lo = mid
-                else:
-                    hi = mid - 1
-            out.append(points[lo])
-            i = lo
+            nxt = i + 1  # points[i] -> points[i + 1] is an original, already-proven link
+            # candidates i+2, i+3, i+5, i+9, ... and the end: one batched query per output vertex
+            targets = sorted({min(i + 1 + 2**k, last) for k in range(max(1, (last - i).bit_length() + 1))} - {i + 1})
+            if targets:
+                clear = self.space.segments_clear([(points[i], points[j]) for j in targets])
+                if np.any(clear):
+                    nxt = targets[int(np.flatnonzero(clear)[-1])]
+            out.append(points[nxt])
+            i = nxt
         return np.stack(out)
+
+
+def _window_groups(indices: np.ndarray, sizes: np.ndarray, budget: int = 1 << 18) -> list[np.ndarray]:
+    """Split primitives into groups whose padded windows (max size per axis x count) stay under ``budget`` cells.
+
+    Sorting by window volume first keeps similar windows together (gate bars apart from tall poles).
+    """
+    order = np.argsort(np.prod(sizes, axis=1), kind="stable")
+    groups: list[list[int]] = []
+    current: list[int] = []
+    bound = (0, 0, 0)
+    for i in order:
+        grown = tuple(max(a, int(b)) for a, b in zip(bound, sizes[i], strict=True))
+        if current and grown[0] * grown[1] * grown[2] * (len(current) + 1) > budget:
+            groups.append(current)
+            current, grown = [], tuple(int(b) for b in sizes[i])
+        current.append(int(indices[i]))
+        bound = grown
+    groups.append(current)
+    return [np.array(g) for g in groups]
 
 
 def _astar(free: bytes, shape: tuple[int, ...], source: int, target: int) -> list[int]:
@@ -283,16 +310,10 @@ def _astar(free: bytes, shape: tuple[int, ...], source: int, target: int) -> lis
     stride = shape[1] * nz
     ti, rest = divmod(target, stride)
     tj, tk = divmod(rest, nz)
-
-    def heuristic(index: int) -> int:
-        i, r = divmod(index, stride)
-        j, k = divmod(r, nz)
-        return abs(i - ti) + abs(j - tj) + abs(k - tk)
-
     steps = (1, -1, nz, -nz, stride, -stride)
     cost = {source: 0}
     parent = {source: -1}
-    heap = [(heuristic(source), 0, source)]
+    heap = [(0, 0, source)]
     while heap:
         _, neg_g, u = heapq.heappop(heap)
         if u == target:
@@ -305,7 +326,10 @@ def _astar(free: bytes, shape: tuple[int, ...], source: int, target: int) -> lis
             if free[v] and g + 1 < cost.get(v, 1 << 60):
                 cost[v] = g + 1
                 parent[v] = u
-                heapq.heappush(heap, (g + 1 + 2 * heuristic(v), -(g + 1), v))
+                i, r = divmod(v, stride)
+                j, k = divmod(r, nz)
+                # weight 2 on the Manhattan heuristic: a valid path fast, not the shortest one
+                heapq.heappush(heap, (g + 1 + 2 * (abs(i - ti) + abs(j - tj) + abs(k - tk)), -(g + 1), v))
     else:
         raise AssertionError("A* ran out of cells between two cells of the same component")
     path = [target]
@@ -360,20 +384,24 @@ def footprint_distance(a: Footprints, b: Footprints) -> np.ndarray:
     cos_b, sin_b, corners_b = b._frame
     # disjoint convex polygons: the closest pair involves a vertex of one of them
     core = np.minimum(
-        _corner_distance(corners_a[:, None], b, cos_b, sin_b, swap=False),
-        _corner_distance(corners_b[None, :], a, cos_a, sin_a, swap=True),
+        _corner_distance(corners_a[:, None], b, cos_b, sin_b, rect_axis=1),
+        _corner_distance(corners_b[None, :], a, cos_a, sin_a, rect_axis=0),
     )
     # overlap without a vertex inside the other (a cross) is caught by the separating-axis test
-    separated = _separated(a, cos_a, sin_a, corners_b[None, :], swap=False) | _separated(
-        b, cos_b, sin_b, corners_a[:, None], swap=True
-    )
+    separated = _separated(a, cos_a, sin_a, corners_b[None, :], rect_axis=0)
+    separated |= _separated(b, cos_b, sin_b, corners_a[:, None], rect_axis=1)
     core = np.where(separated, core, 0.0)
     return np.maximum(core - a.rounding[:, None] - b.rounding[None, :], 0.0)
 
 
-def _corner_distance(corners: np.ndarray, rect: Footprints, cos: np.ndarray, sin: np.ndarray, swap: bool) -> np.ndarray:
-    """Smallest distance from the 4 corners ``(A, B, 4, 2)`` to the rectangles of ``rect`` (A's or B's axis)."""
-    shape = (-1, 1, 1) if swap else (1, -1, 1)
+def _corner_distance(
+    corners: np.ndarray, rect: Footprints, cos: np.ndarray, sin: np.ndarray, rect_axis: int
+) -> np.ndarray:
+    """Smallest distance ``(A, B)`` from 4 corners ``(A or 1, B or 1, 4, 2)`` to the rectangles of ``rect``.
+
+    ``rect`` is laid along result axis ``rect_axis`` (0: A, 1: B); its rounding is ignored here.
+    """
+    shape = (-1, 1, 1) if rect_axis == 0 else (1, -1, 1)
     centre = rect.centre.reshape(*shape, 2)
     c, s = cos.reshape(shape), sin.reshape(shape)
     dx, dy = corners[..., 0] - centre[..., 0], corners[..., 1] - centre[..., 1]
@@ -382,9 +410,12 @@ def _corner_distance(corners: np.ndarray, rect: Footprints, cos: np.ndarray, sin
     return np.hypot(ex, ey).min(axis=-1)
 
 
-def _separated(rect: Footprints, cos: np.ndarray, sin: np.ndarray, corners: np.ndarray, swap: bool) -> np.ndarray:
-    """Whether one of ``rect``'s two axes separates it from the polygons with ``corners`` ``(A, B, 4, 2)``."""
-    shape = (1, -1, 1) if swap else (-1, 1, 1)
+def _separated(rect: Footprints, cos: np.ndarray, sin: np.ndarray, corners: np.ndarray, rect_axis: int) -> np.ndarray:
+    """Whether one of ``rect``'s two axes separates it from the quadrilaterals with ``corners`` (result ``(A, B)``).
+
+    ``rect`` is laid along result axis ``rect_axis`` (0: A, 1: B), ``corners`` along the other one.
+    """
+    shape = (-1, 1, 1) if rect_axis == 0 else (1, -1, 1)
     c, s = cos.reshape(shape), sin.reshape(shape)
     centre = rect.centre.reshape(*shape, 2)
     dx, dy = corners[..., 0] - centre[..., 0], corners[..., 1] - centre[..., 1]
@@ -470,7 +501,8 @@ class ObstacleGenerator:
         self.grid_resolution = float(grid_resolution)
         self.max_attempts = int(max_attempts)
         self.arena_low, self.arena_high = arena_bounds(track)
-        self.rejections: Counter[str] = Counter()  # why layouts were redrawn, for diagnostics
+        self.rejections: Counter[str] = Counter()  # why layouts were redrawn, summed over all calls
+        self._start_clear_of_track_gates: bool | None = None
 
     @property
     def corridor_radius(self) -> float:
@@ -480,20 +512,22 @@ class ObstacleGenerator:
     def sample_scene(self, np_random: np.random.Generator) -> Scene:
         """Draw one scene; all randomness comes from ``np_random``, so a seeded generator fixes the scene.
 
+        Obstacles are listed region by region, ``density`` per entry of ``track.obstacle_regions``.
         Raises ``RuntimeError`` when ``max_attempts`` layouts in a row fail the checks.
         """
         track = self.track
         radius = self.corridor_radius
+        rejected: Counter[str] = Counter()
         for _ in range(self.max_attempts):
             gates = self._perturb_gates(np_random)
             spread = track.start.spread
             start = np_random.uniform(track.start.center - spread, track.start.center + spread)
             if not self._start_clear_of_gates(gates):
-                self.rejections["start_near_gate"] += 1
+                rejected["start_near_gate"] += 1
                 continue
             obstacles = self._place_obstacles(np_random, gates)
             if obstacles is None:
-                self.rejections["placement"] += 1
+                rejected["placement"] += 1
                 continue
             scene = Scene(
                 track=track,
@@ -506,14 +540,16 @@ class ObstacleGenerator:
             )
             # room to fly over the highest frame is enough: the poles are vertical, height does not help
             ceiling = max(g.center[2] + g.outer / 2.0 for g in gates) + 2.0 * (radius + self.grid_resolution)
-            legs = _plan_corridor(scene, radius, self.grid_resolution, None, 0.25, ceiling, need_path=False)
+            legs = _plan_corridor(scene, radius, self.grid_resolution, None, _APPROACH, ceiling, need_path=False)
             if legs is not None:
+                self.rejections.update(rejected)
                 return scene
-            self.rejections["corridor"] += 1
+            rejected["corridor"] += 1
+        self.rejections.update(rejected)
         raise RuntimeError(
             f"ObstacleGenerator: no valid layout for track {track.name!r} in {self.max_attempts} attempts "
             f"(density={self.density}, kind={self.kind!r}, gate_shift={self.gate_shift}, clearance={self.clearance}, "
-            f"corridor radius={radius}); rejections so far: {dict(self.rejections)}. "
+            f"corridor radius={radius}); rejected layouts: {dict(rejected)}. "
             "Lower the density, clearance or gate_shift, or raise max_attempts."
         )
 
@@ -539,9 +575,14 @@ class ObstacleGenerator:
 
     def _start_clear_of_gates(self, gates: tuple[Gate, ...]) -> bool:
         """Whether the whole start box is ``corridor_radius`` from every bar (centre bound: half-diagonal)."""
+        if gates is self.track.gates and self._start_clear_of_track_gates is not None:
+            return self._start_clear_of_track_gates  # unperturbed gates: the answer never changes
         bars = Scene(self.track, gates, (), self.track.start.center, 0.0, self.arena_low, self.arena_high)
         half_diagonal = float(np.linalg.norm(self.track.start.spread))
-        return float(bars.distance(self.track.start.center)) >= half_diagonal + self.corridor_radius
+        clear = float(bars.distance(self.track.start.center)) >= half_diagonal + self.corridor_radius
+        if gates is self.track.gates:
+            self._start_clear_of_track_gates = clear
+        return clear
 
     def _place_obstacles(self, rng: np.random.Generator, gates: tuple[Gate, ...]) -> tuple[Obstacle, ...] | None:
         """``density`` obstacles per region meeting the clearance rules, or ``None`` if a region cannot be filled."""
@@ -572,20 +613,19 @@ class ObstacleGenerator:
         valid = np.all(dist >= t_min, axis=1)
         # obstacles keep apart by their circumscribed circles (conservative, cheap)
         reach = np.where(is_box, np.hypot(half[:, 0], half[:, 1]), rounding)
+        gap = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+        conflict = gap <= reach[:, None] + reach[None, :] + _TOUCH
+        available = valid.copy()
         height = self.pole_height
-        accepted: list[int] = []
         obstacles = []
         for r in range(len(regions)):
             count = 0
             for i in range(r * n, (r + 1) * n):
                 if count == self.density:
                     break
-                if not valid[i] or any(
-                    math.hypot(xy[i, 0] - xy[j, 0], xy[i, 1] - xy[j, 1]) <= reach[i] + reach[j] + _TOUCH
-                    for j in accepted
-                ):
+                if not available[i]:
                     continue
-                accepted.append(i)
+                available &= ~conflict[i]  # later candidates must keep clear of this one
                 count += 1
                 position = np.array([xy[i, 0], xy[i, 1], height / 2.0])
                 if is_box[i]:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from racebench.obstacles import ObstacleGenerator, find_corridor
+from racebench.obstacles import Footprints, ObstacleGenerator, find_corridor, footprint_distance
 from racebench.scene import Obstacle, Scene, arena_bounds
 from racebench.track import Gate, Track, load_track
 
@@ -99,20 +99,25 @@ def _gate_bars(gate: Gate) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.
 
 
 def _brute_distance(scene: Scene, points: np.ndarray) -> np.ndarray:
-    """Distance to every gate bar and obstacle, one primitive at a time."""
+    """Distance to every gate bar and obstacle: per-primitive formulas, broadcast over points x primitives."""
     best = np.full(len(points), np.inf)
-    for gate in scene.gates:
-        for centre, half, n, lat in _gate_bars(gate):
-            d = points - centre
-            local = np.stack([d @ n, d @ lat, d[:, 2]], axis=1)
-            best = np.minimum(best, np.linalg.norm(np.maximum(np.abs(local) - half, 0.0), axis=1))
+    bars = [bar for gate in scene.gates for bar in _gate_bars(gate)]
+    if bars:
+        centre, half, n, lat = (np.array(v) for v in zip(*bars, strict=True))
+        along = np.abs(points @ n.T - np.sum(centre * n, axis=1)) - half[:, 0]
+        across = np.abs(points @ lat.T - np.sum(centre * lat, axis=1)) - half[:, 1]
+        up = np.abs(points[:, 2:] - centre[:, 2]) - half[:, 2]
+        excess = [np.maximum(v, 0.0) for v in (along, across, up)]
+        best = np.minimum(best, np.sqrt(sum(e * e for e in excess)).min(axis=1))
+    poles = [o for o in scene.obstacles if o.kind == "cylinder"]
+    if poles:
+        d = points[:, None] - np.array([o.position for o in poles])[None]
+        radial = np.maximum(np.hypot(d[..., 0], d[..., 1]) - np.array([o.size[0] for o in poles]), 0.0)
+        vertical = np.maximum(np.abs(d[..., 2]) - np.array([o.size[1] for o in poles]) / 2.0, 0.0)
+        best = np.minimum(best, np.hypot(radial, vertical).min(axis=1))
     for obs in scene.obstacles:
-        d = points - obs.position
-        if obs.kind == "cylinder":
-            radial = np.maximum(np.hypot(d[:, 0], d[:, 1]) - obs.size[0], 0.0)
-            vertical = np.maximum(np.abs(d[:, 2]) - obs.size[1] / 2.0, 0.0)
-            best = np.minimum(best, np.hypot(radial, vertical))
-        else:
+        if obs.kind == "box":
+            d = points - obs.position
             c, s = math.cos(obs.yaw), math.sin(obs.yaw)
             local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)
             best = np.minimum(best, np.linalg.norm(np.maximum(np.abs(local) - np.array(obs.size), 0.0), axis=1))
@@ -143,7 +148,13 @@ def _crossings(path: np.ndarray, gate: Gate, margin: float) -> np.ndarray:
     return (k + t)[inside]
 
 
-def _check_corridor(scene: Scene, radius: float, path: np.ndarray | None, label: str) -> None:
+def _ceiling(gen: ObstacleGenerator, scene: Scene) -> float:
+    """Fly no higher than the pole tops, unless a gate is so high that passing over its frame needs more."""
+    top = max(g.center[2] + g.outer / 2.0 for g in scene.gates)
+    return max(gen.pole_height, top + 2.0 * gen.corridor_radius + 0.2)
+
+
+def _check_corridor(scene: Scene, radius: float, path: np.ndarray | None, label: str, ceiling: float = np.inf) -> None:
     assert path is not None, f"{label}: no corridor found"
     assert path.ndim == 2 and path.shape[1] == 3
     np.testing.assert_allclose(path[0], scene.track.start.center, err_msg=label)
@@ -153,6 +164,7 @@ def _check_corridor(scene: Scene, radius: float, path: np.ndarray | None, label:
     assert np.all(scene.distance(points) >= radius - TOL), f"{label}: path within radius of geometry"
     assert np.all(_brute_distance(scene, points) >= radius - TOL), f"{label}: path hits geometry (brute force)"
     assert np.all(points[:, 2] >= radius - TOL), f"{label}: path too close to the ground"
+    assert np.all(points[:, 2] <= ceiling - radius + TOL), f"{label}: path above the ceiling"
     assert np.all(points >= scene.arena_low + radius - TOL) and np.all(points <= scene.arena_high - radius + TOL)
     position = -1.0
     for i, gate in enumerate(scene.gates):
@@ -208,7 +220,23 @@ def test_generated_scenes_keep_clearances_and_a_corridor(name: str) -> None:
         scene = gen.sample_scene(np.random.default_rng(seed))
         label = f"{name} seed {seed} density {gen.density} shift {gen.gate_shift}"
         _check_clearances(gen, scene, label)
-        _check_corridor(scene, gen.corridor_radius, find_corridor(scene, gen.corridor_radius), label)
+        ceiling = _ceiling(gen, scene)
+        path = find_corridor(scene, gen.corridor_radius, ceiling=ceiling)
+        _check_corridor(scene, gen.corridor_radius, path, label, ceiling)
+
+
+@pytest.mark.parametrize("name", ["S", "J", "Circle"])
+def test_corridor_check_rejects_blocked_layouts(name: str) -> None:
+    """Fat poles often wall a leg off: such layouts are redrawn, and every scene returned has a corridor."""
+    track = _track(name)
+    gen = ObstacleGenerator(track, density=6, gate_shift=0.5, clearance=0.25, radius_choices=(0.3, 0.5))
+    for seed in range(15):
+        scene = gen.sample_scene(np.random.default_rng(seed))
+        _check_clearances(gen, scene, f"{name} fat seed {seed}")
+        ceiling = _ceiling(gen, scene)
+        path = find_corridor(scene, gen.corridor_radius, ceiling=ceiling)
+        _check_corridor(scene, gen.corridor_radius, path, f"{name} fat seed {seed}", ceiling)
+    assert gen.rejections["corridor"] > 0
 
 
 @pytest.mark.parametrize("kind", ["box", "mixed"])
@@ -217,7 +245,7 @@ def test_box_obstacles_keep_clearances_and_a_corridor(name: str, kind: str) -> N
     """Box footprints (yawed rectangles) obey the same rules, checked with polygon distances."""
     track = _track(name)
     gen = ObstacleGenerator(track, density=5, kind=kind, gate_shift=1.0)
-    for seed in range(40):
+    for seed in range(25):
         scene = gen.sample_scene(np.random.default_rng(seed))
         label = f"{name} {kind} seed {seed}"
         assert len(scene.obstacles) == 5 * len(track.obstacle_regions)
@@ -243,7 +271,9 @@ def test_box_obstacles_keep_clearances_and_a_corridor(name: str, kind: str) -> N
                 )
                 assert _box_to_shape(obs, frame) > 0.0, f"{label}: box intersects a gate frame"
             assert _box_to_shape(obs, start_box) >= gen.clearance - TOL, f"{label}: box near the start region"
-        _check_corridor(scene, gen.corridor_radius, find_corridor(scene, gen.corridor_radius), label)
+        ceiling = _ceiling(gen, scene)
+        path = find_corridor(scene, gen.corridor_radius, ceiling=ceiling)
+        _check_corridor(scene, gen.corridor_radius, path, label, ceiling)
 
 
 def test_same_seed_same_scene_and_different_seeds_differ() -> None:
@@ -376,6 +406,42 @@ def test_find_corridor_rejects_a_blocked_start_and_bad_arguments() -> None:
     assert find_corridor(scene, 0.2, start=np.array([2.0, 2.0, 1.0])) is not None
     with pytest.raises(ValueError, match="radius"):
         find_corridor(scene, 0.0)
+
+
+# --------------------------------------------------------------------------- footprints
+def _fp(centre: list, half: list, yaw: float = 0.0, rounding: float = 0.0) -> Footprints:
+    return Footprints(np.array([centre], float), np.array([half], float), np.array([yaw]), np.array([rounding]))
+
+
+def test_footprint_distance_hand_cases() -> None:
+    square = _fp([0, 0], [0.5, 0.5])
+    cases = [
+        (_fp([2, 0], [0.5, 0.5]), 1.0),  # side to side
+        (_fp([2, 0], [0.5, 0.5], math.pi / 4), 1.5 - math.sqrt(0.5)),  # a corner pointing at a side
+        (_fp([0, 1.7], [0, 0], rounding=0.2), 1.0),  # a disc above the top side
+        (_fp([1.5, 1.5], [0, 0], rounding=0.2), math.hypot(1, 1) - 0.2),  # a disc off a corner
+        (_fp([0, 0.9], [1.0, 0.0]), 0.4),  # a segment above, longer than the square
+        (_fp([0.3, 0.2], [0.1, 0.1]), 0.0),  # inside
+        (_fp([0, 0], [2.0, 0.1]), 0.0),  # a cross: no corner of either lies inside the other
+        (_fp([0, 0], [1.0, 0.0], math.pi / 3), 0.0),  # a segment straight through
+    ]
+    for other, expected in cases:
+        assert footprint_distance(square, other)[0, 0] == pytest.approx(expected, abs=1e-12)
+        assert footprint_distance(other, square)[0, 0] == pytest.approx(expected, abs=1e-12)
+
+
+def test_footprint_distance_matches_polygon_distance() -> None:
+    rng = np.random.default_rng(5)
+    n = 300
+    a = Footprints(rng.uniform(-1, 1, (n, 2)), rng.uniform(0.05, 0.6, (n, 2)), rng.uniform(-3, 3, n), np.zeros(n))
+    b = Footprints(rng.uniform(-1, 1, (4, 2)), rng.uniform(0.05, 0.6, (4, 2)), rng.uniform(-3, 3, 4), np.zeros(4))
+    got = footprint_distance(a, b)
+    assert got.shape == (n, 4) and np.any(got == 0.0) and np.any(got > 0.0)
+    for j in range(4):
+        other = Obstacle("box", np.array([*b.centre[j], 0.0]), (*b.half[j], 1.0), float(b.yaw[j]))
+        for i in range(n):
+            box = Obstacle("box", np.array([*a.centre[i], 0.0]), (*a.half[i], 1.0), float(a.yaw[i]))
+            assert got[i, j] == pytest.approx(_box_to_shape(box, _polygon(other)), abs=1e-9)
 
 
 # --------------------------------------------------------------------------- Scene.distance
