@@ -125,6 +125,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_train.add_argument("--n-envs", type=int, default=None, help="override the config's n_envs")
     p_train.add_argument("--eval-episodes", type=int, default=10, help="final evaluation episodes (0: none)")
 
+    p_bench = sub.add_parser("bench", help="throughput: depth frames/s of both renderers, env steps/s, memory")
+    p_bench.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds (a smoke test)")
+    p_bench.add_argument("--out", default="bench.csv", help="CSV of every measurement (default bench.csv)")
+    p_bench.add_argument("--track", default="S", choices=["S", "J", "Circle"])
+    p_bench.add_argument("--num-envs", type=int, default=None, help="envs of each vector-env run (default 32)")
+
     args = parser.parse_args(argv)
     if args.command == "envs":
         print("\n".join(racebench.ENV_IDS))
@@ -197,6 +203,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         _make(args.env)  # validates the id with a clear message
         print(f"wrote {render_episode_gif(args.agent, args.env, args.seed, args.out)}")
+    elif args.command == "bench":
+        from racebench.benchmark import BenchSettings, run_benchmark
+
+        settings = BenchSettings.quick() if args.quick else BenchSettings()
+        settings.track = args.track
+        if args.num_envs is not None:
+            if args.num_envs < 2:
+                raise SystemExit("racebench bench: --num-envs must be >= 2 (one batch per process)")
+            settings.vector_envs = args.num_envs
+        run_benchmark(settings, out=args.out)
     return 0
 
 

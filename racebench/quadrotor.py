@@ -1,7 +1,8 @@
 """Quadrotor model: CTBR action mapping, body-rate controller, X-layout motor allocation, motor lag, drag.
 
-This module is pure numpy; :mod:`racebench.simulation` applies the forces and torques it returns to a
-PyBullet rigid body at every physics step. Defaults are the paper's Table I airframe:
+:mod:`racebench.simulation` applies the forces and torques it returns to a PyBullet rigid body at every
+physics step; that per-step arithmetic is compiled with numba (on arrays of 3-4 numbers numpy's and Python's
+per-operation overhead costs several times the arithmetic). Defaults are the paper's Table I airframe:
 mass 0.58 kg, inertia diag(1.01, 1.53, 2.03) g·m², 14 N maximum total thrust, 0.075 m arms.
 
 Action (CTBR) in ``[-1, 1]^4``:
@@ -16,6 +17,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 
 @dataclass(frozen=True)
@@ -88,7 +90,28 @@ class Quadrotor:
         self.max_body_rate = np.asarray(p.max_body_rate, dtype=float)
         self.drag = np.asarray(p.drag_coefficients, dtype=float)
         self.max_motor_thrust = p.max_thrust / 4.0
-        self.motor_thrusts = np.zeros(4)
+        # Everything the compiled per-physics-step kernels need, in one array (layout: see _CONSTS).
+        self._consts = np.concatenate(
+            [
+                self.inertia,
+                self.inertia * self.rate_gain,
+                self.allocation_inv.ravel(),
+                self.allocation.ravel(),
+                [self.max_motor_thrust, 1.0],  # the motor-lag factor is set per dt (_lag)
+                self.drag,
+            ]
+        )
+        self._alpha_dt = math.nan  # dt of the motor-lag factor in _consts
+        self._motors = np.zeros(4)
+
+    @property
+    def motor_thrusts(self) -> np.ndarray:
+        """The four motor thrusts (N), front-right, rear-left, front-left, rear-right."""
+        return self._motors.copy()
+
+    @motor_thrusts.setter
+    def motor_thrusts(self, value: np.ndarray) -> None:
+        self._motors = np.array(value, dtype=np.float64).reshape(4)
 
     def reset(self, hover: bool = True) -> None:
         """Set the motors to hover thrust (or off), so an episode starts without a thrust transient."""
@@ -99,6 +122,12 @@ class Quadrotor:
         a = np.clip(action, -1.0, 1.0)
         return (a[0] + 1.0) * 0.5 * self.params.max_thrust, a[1:] * self.max_body_rate
 
+    def _lag(self, dt: float) -> None:
+        if dt != self._alpha_dt:  # the motor-lag factor only changes with dt: compute exp() once
+            tau = self.params.motor_time_constant
+            self._consts[_ALPHA] = 1.0 if tau == 0 else 1.0 - math.exp(-dt / tau)
+            self._alpha_dt = dt
+
     def actuate(
         self, thrust_cmd: float, rate_cmd: np.ndarray, body_rates: np.ndarray, dt: float
     ) -> tuple[float, np.ndarray]:
@@ -107,18 +136,108 @@ class Quadrotor:
         The rate loop is ``τ = J K (ω_cmd − ω) + ω × Jω``; motor commands come from inverting the X-layout
         allocation, are clipped to each motor's range and followed with a first-order lag.
         """
-        w = body_rates
-        jw = self.inertia * w
-        gyro = np.array([w[1] * jw[2] - w[2] * jw[1], w[2] * jw[0] - w[0] * jw[2], w[0] * jw[1] - w[1] * jw[0]])
-        torque_cmd = self.inertia * self.rate_gain * (rate_cmd - w) + gyro  # np.cross costs 10x this
-        wrench = np.array([thrust_cmd, torque_cmd[0], torque_cmd[1], torque_cmd[2]])
-        motor_cmd = np.clip(self.allocation_inv @ wrench, 0.0, self.max_motor_thrust)
-        tau = self.params.motor_time_constant
-        alpha = 1.0 if tau == 0 else 1.0 - math.exp(-dt / tau)
-        self.motor_thrusts = self.motor_thrusts + alpha * (motor_cmd - self.motor_thrusts)
-        out = self.allocation @ self.motor_thrusts
-        return float(out[0]), out[1:]
+        rx, ry, rz = (float(v) for v in rate_cmd)
+        wx, wy, wz = (float(v) for v in body_rates)
+        thrust, tx, ty, tz = self.actuate_scalar(float(thrust_cmd), rx, ry, rz, wx, wy, wz, dt)
+        return thrust, np.array([tx, ty, tz])
+
+    def actuate_scalar(
+        self, thrust_cmd: float, rx: float, ry: float, rz: float, wx: float, wy: float, wz: float, dt: float
+    ) -> tuple[float, float, float, float]:
+        """:meth:`actuate` on plain floats: rate command ``r``, body rates ``w``; returns ``(T, τx, τy, τz)``."""
+        self._lag(dt)
+        return _actuate(self._consts, self._motors, thrust_cmd, rx, ry, rz, wx, wy, wz)
+
+    def world_wrench(
+        self,
+        quaternion: tuple[float, float, float, float],
+        velocity: tuple[float, float, float],
+        angular_velocity: tuple[float, float, float],
+        thrust_cmd: float,
+        rate_cmd: tuple[float, float, float],
+        dt: float,
+    ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """One physics step of the controller from the world-frame state: (force, torque), world frame.
+
+        Body rates and velocity from the (x, y, z, w) attitude, :meth:`actuate`, quadratic drag, thrust along
+        body z; compiled, since it runs at every physics step (Python-level arithmetic cost 3x more here).
+        """
+        if dt != self._alpha_dt:
+            self._lag(dt)
+        return _world_wrench(self._consts, self._motors, quaternion, velocity, angular_velocity, thrust_cmd, rate_cmd)
 
     def drag_force(self, body_velocity: np.ndarray) -> np.ndarray:
         """Quadratic drag in the body frame, opposing the body-frame velocity."""
         return -self.drag * body_velocity * np.abs(body_velocity)
+
+
+# Layout of Quadrotor._consts: J (3), J K (3), allocation⁻¹ (16, row-major), allocation (16), max motor thrust,
+# motor-lag factor α, drag coefficients (3).
+_J, _JK, _AINV, _A, _TOP, _ALPHA, _DRAG = 0, 3, 6, 22, 38, 39, 40
+
+
+@njit(cache=True)
+def _actuate(
+    c: np.ndarray,
+    motors: np.ndarray,
+    thrust_cmd: float,
+    rx: float,
+    ry: float,
+    rz: float,
+    wx: float,
+    wy: float,
+    wz: float,
+) -> tuple[float, float, float, float]:
+    """Rate loop, allocation, per-motor clipping and lag (updates ``motors``); returns ``(T, τx, τy, τz)``."""
+    hx, hy, hz = c[_J] * wx, c[_J + 1] * wy, c[_J + 2] * wz  # J ω
+    wrench = (
+        thrust_cmd,
+        c[_JK] * (rx - wx) + (wy * hz - wz * hy),  # J K (ω_cmd − ω) + ω × Jω
+        c[_JK + 1] * (ry - wy) + (wz * hx - wx * hz),
+        c[_JK + 2] * (rz - wz) + (wx * hy - wy * hx),
+    )
+    top, alpha = c[_TOP], c[_ALPHA]
+    for i in range(4):
+        row = _AINV + 4 * i
+        cmd = c[row] * wrench[0] + c[row + 1] * wrench[1] + c[row + 2] * wrench[2] + c[row + 3] * wrench[3]
+        cmd = 0.0 if cmd < 0.0 else (top if cmd > top else cmd)
+        motors[i] += alpha * (cmd - motors[i])
+    f0, f1, f2, f3 = motors[0], motors[1], motors[2], motors[3]
+    out = [0.0, 0.0, 0.0, 0.0]
+    for k in range(4):
+        row = _A + 4 * k
+        out[k] = c[row] * f0 + c[row + 1] * f1 + c[row + 2] * f2 + c[row + 3] * f3
+    return out[0], out[1], out[2], out[3]
+
+
+@njit(cache=True)
+def _world_wrench(
+    c: np.ndarray,
+    motors: np.ndarray,
+    q: tuple[float, float, float, float],
+    v: tuple[float, float, float],
+    w: tuple[float, float, float],
+    thrust_cmd: float,
+    rate: tuple[float, float, float],
+) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """:meth:`Quadrotor.world_wrench`: the rotation as Bullet's ``getMatrixFromQuaternion`` computes it."""
+    x, y, z, qw = q
+    s = 2.0 / (x * x + y * y + z * z + qw * qw)
+    xs, ys, zs = x * s, y * s, z * s
+    wx_, wy_, wz_ = qw * xs, qw * ys, qw * zs
+    xx, xy, xz = x * xs, x * ys, x * zs
+    yy, yz, zz = y * ys, y * zs, z * zs
+    r0, r1, r2 = 1.0 - (yy + zz), xy - wz_, xz + wy_
+    r3, r4, r5 = xy + wz_, 1.0 - (xx + zz), yz - wx_
+    r6, r7, r8 = xz - wy_, yz + wx_, 1.0 - (xx + yy)
+    vx, vy, vz = v
+    ax, ay, az = w
+    # Body rates and body velocity: Rᵀ ω, Rᵀ v.
+    bwx, bwy, bwz = r0 * ax + r3 * ay + r6 * az, r1 * ax + r4 * ay + r7 * az, r2 * ax + r5 * ay + r8 * az
+    bx, by, bz = r0 * vx + r3 * vy + r6 * vz, r1 * vx + r4 * vy + r7 * vz, r2 * vx + r5 * vy + r8 * vz
+    thrust, tx, ty, tz = _actuate(c, motors, thrust_cmd, rate[0], rate[1], rate[2], bwx, bwy, bwz)
+    # Quadratic drag opposing the body-frame velocity, plus the thrust along body z.
+    fx, fy, fz = -c[_DRAG] * bx * abs(bx), -c[_DRAG + 1] * by * abs(by), -c[_DRAG + 2] * bz * abs(bz) + thrust
+    force = (r0 * fx + r1 * fy + r2 * fz, r3 * fx + r4 * fy + r5 * fz, r6 * fx + r7 * fy + r8 * fz)
+    torque = (r0 * tx + r1 * ty + r2 * tz, r3 * tx + r4 * ty + r5 * tz, r6 * tx + r7 * ty + r8 * tz)
+    return force, torque

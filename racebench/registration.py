@@ -48,4 +48,9 @@ def register_envs() -> None:
     """Register every id in :data:`ENV_IDS` with Gymnasium (idempotent)."""
     for env_id, kwargs in ENV_KWARGS.items():
         if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point="racebench.env:RaceEnv", kwargs=kwargs)
+            gym.register(
+                id=env_id,
+                entry_point="racebench.env:RaceEnv",
+                vector_entry_point="racebench.vector:RaceVectorEnv",  # gym.make_vec: batched, worker processes
+                kwargs=kwargs,
+            )

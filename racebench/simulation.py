@@ -3,6 +3,11 @@
 One ``BulletClient`` (``p.DIRECT``) per environment. The world is built once; a new episode's scene is
 loaded by moving bodies with ``resetBasePositionAndOrientation``. Obstacle bodies are pooled by shape
 (the obstacle generator quantises sizes), unused ones are parked far below the arena.
+
+The per-physics-step path (:meth:`Simulation.step_raw`, :meth:`Simulation.contact`) calls the ``pybullet``
+functions directly with the client id and plain tuples: ``BulletClient.__getattr__`` builds a
+``functools.partial`` on every call, and numpy arrays of 3 or 4 numbers cost more to make and convert than
+the arithmetic on them.
 """
 
 from __future__ import annotations
@@ -50,6 +55,11 @@ _GATE_RGBA = [0.95, 0.45, 0.05, 1.0]
 _OBSTACLE_RGBA = [0.35, 0.35, 0.8, 1.0]
 
 
+Vec3 = tuple[float, float, float]
+# (position, quaternion x y z w, linear velocity, angular velocity), world frame, as PyBullet returns them.
+RawState = tuple[Vec3, tuple[float, float, float, float], Vec3, Vec3]
+
+
 class DroneState(NamedTuple):
     """Kinematic state of the drone, world frame unless said otherwise."""
 
@@ -63,6 +73,13 @@ class DroneState(NamedTuple):
     def body_rates(self) -> np.ndarray:
         """Angular velocity in the body frame, rad/s."""
         return self.rotation.T @ self.angular_velocity
+
+    @classmethod
+    def from_raw(cls, raw: RawState) -> DroneState:
+        """Arrays from PyBullet's tuples (the rotation from PyBullet's own quaternion-to-matrix conversion)."""
+        pos, quat, vel, ang = raw
+        rot = np.array(p.getMatrixFromQuaternion(quat)).reshape(3, 3)
+        return cls(np.array(pos), np.array(quat), rot, np.array(vel), np.array(ang))
 
 
 def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
@@ -116,6 +133,8 @@ class Simulation:
         self.body_kind: dict[int, str] = {self.ground: "ground", **{g: "gate" for g in self.gates}}
         self._pool: dict[tuple, list[int]] = {}
         self._active: list[int] = []
+        self._cid = c._client  # the raw client id, for direct pybullet calls on the hot path
+        self._raw: RawState = self._read_state()
 
     def _build_gate(self, gate) -> int:
         c = self.client
@@ -179,26 +198,45 @@ class Simulation:
         c = self.client
         c.resetBasePositionAndOrientation(self.drone, position.tolist(), yaw_quaternion(yaw))
         c.resetBaseVelocity(self.drone, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+        self._raw = self._read_state()
+
+    def _read_state(self) -> RawState:
+        pos, quat = p.getBasePositionAndOrientation(self.drone, self._cid)
+        vel, ang = p.getBaseVelocity(self.drone, self._cid)
+        return pos, quat, vel, ang
+
+    @property
+    def raw_state(self) -> RawState:
+        """The drone's state as PyBullet's tuples ``(position, quaternion, velocity, angular velocity)``."""
+        return self._raw
 
     def drone_state(self) -> DroneState:
-        """The drone's current kinematic state."""
-        c = self.client
-        pos, quat = c.getBasePositionAndOrientation(self.drone)
-        vel, ang = c.getBaseVelocity(self.drone)
-        rot = np.array(c.getMatrixFromQuaternion(quat)).reshape(3, 3)
-        return DroneState(np.array(pos), np.array(quat), rot, np.array(vel), np.array(ang))
+        """The drone's current kinematic state (read from PyBullet, so it also sees bodies moved directly)."""
+        self._raw = self._read_state()
+        return DroneState.from_raw(self._raw)
+
+    def step_raw(self, force_world: Vec3, torque_world: Vec3, position: Vec3) -> RawState:
+        """Apply a world-frame force at ``position`` (the centre of mass) and a world-frame torque, step once.
+
+        Returns the new state (also kept as :attr:`raw_state`).
+        """
+        cid, drone = self._cid, self.drone
+        # World-frame application on purpose: PyBullet's LINK_FRAME torque on a base is unreliable.
+        p.applyExternalForce(drone, -1, force_world, position, p.WORLD_FRAME, cid)
+        p.applyExternalTorque(drone, -1, torque_world, p.WORLD_FRAME, cid)
+        p.stepSimulation(cid)
+        pos, quat = p.getBasePositionAndOrientation(drone, cid)
+        vel, ang = p.getBaseVelocity(drone, cid)
+        self._raw = (pos, quat, vel, ang)
+        return self._raw
 
     def step(self, force_world: np.ndarray, torque_world: np.ndarray, position: np.ndarray) -> None:
         """Apply a world-frame force at the centre of mass and a world-frame torque, then step once."""
-        c = self.client
-        # World-frame application on purpose: PyBullet's LINK_FRAME torque on a base is unreliable.
-        c.applyExternalForce(self.drone, -1, force_world.tolist(), position.tolist(), p.WORLD_FRAME)
-        c.applyExternalTorque(self.drone, -1, torque_world.tolist(), p.WORLD_FRAME)
-        c.stepSimulation()
+        self.step_raw(tuple(force_world.tolist()), tuple(torque_world.tolist()), tuple(position.tolist()))
 
     def contact(self) -> str | None:
         """What the drone touches now (``"gate"``, ``"obstacle"``, ``"ground"``), or ``None``."""
-        for point in self.client.getContactPoints(bodyA=self.drone):
+        for point in p.getContactPoints(self.drone, physicsClientId=self._cid):
             if point[8] <= 0.0:  # contactDistance: Bullet also reports near-misses within its margin
                 return self.body_kind.get(point[2], "obstacle")
         return None

@@ -11,7 +11,9 @@ the direction in which it must be flown through (0 = +x, +pi/2 = +y).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -75,20 +77,29 @@ class Gate:
             (np.array([0.0, -mid, 0.0]), np.array([d, w / 2.0, half_in])),  # right
         ]
 
-    def passed_by(self, p0: np.ndarray, p1: np.ndarray) -> bool:
+    def passed_by(self, p0: Sequence[float], p1: Sequence[float]) -> bool:
         """Whether the segment ``p0 → p1`` crosses the gate plane inside the opening, along the normal.
 
         The crossing must go from the back half-space (``(p − c)·n < 0``) to the front (``≥ 0``); the
         intersection point with the plane must lie inside the square opening.
         """
-        n = self.normal
-        s0 = float(np.dot(p0 - self.center, n))
-        s1 = float(np.dot(p1 - self.center, n))
+        # Plain floats: this runs at every physics step, where numpy's per-call overhead dominates.
+        cx, cy, cz, nx, ny = self._plane
+        ax, ay, az = float(p0[0]) - cx, float(p0[1]) - cy, float(p0[2]) - cz
+        bx, by, bz = float(p1[0]) - cx, float(p1[1]) - cy, float(p1[2]) - cz
+        s0 = ax * nx + ay * ny
+        s1 = bx * nx + by * ny
         if not (s0 < 0.0 <= s1):
             return False
-        hit = p0 + (p1 - p0) * (s0 / (s0 - s1)) - self.center
+        f = s0 / (s0 - s1)
+        hx, hy, hz = ax + (bx - ax) * f, ay + (by - ay) * f, az + (bz - az) * f
         half = self.inner / 2.0
-        return abs(float(np.dot(hit, self.lateral))) <= half and abs(float(hit[2])) <= half
+        return abs(-hx * ny + hy * nx) <= half and abs(hz) <= half  # (lateral = (−n_y, n_x, 0))
+
+    @cached_property
+    def _plane(self) -> tuple[float, float, float, float, float]:
+        """Centre and horizontal normal as floats, computed once per gate."""
+        return (*(float(v) for v in self.center), math.cos(self.yaw), math.sin(self.yaw))
 
     def moved(self, center: np.ndarray) -> Gate:
         """A copy of this gate with its centre moved to ``center``."""
