@@ -9,10 +9,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import gymnasium as gym
-import numpy as np
 
 import racebench
-from racebench.control import GateFollower
 
 BUILTIN_FLY_AGENTS: tuple[str, ...] = ("follow", "hover", "random")
 
@@ -25,39 +23,17 @@ def _make(env_id: str, **kwargs) -> gym.Env:
 
 def fly(env_id: str, agent: str, seed: int, obs_mode: str | None = None) -> dict:
     """Fly one episode of ``env_id`` with a built-in agent; return its outcome as a dict."""
+    from racebench.agents import load_agent
+    from racebench.evaluation import run_episode
+
     if agent not in BUILTIN_FLY_AGENTS:
         raise SystemExit(f"racebench fly: unknown agent {agent!r}; choose from {BUILTIN_FLY_AGENTS}")
-    env = _make(env_id, **({"obs_mode": obs_mode} if obs_mode else {}))
-    follower = GateFollower()
-    _, info = env.reset(seed=seed)
-    env.action_space.seed(seed)
-    unwrapped = env.unwrapped
-    hover = np.array([unwrapped.params.hover_action, 0.0, 0.0, 0.0], dtype=np.float32)
-    total, steps = 0.0, 0
-    terminated = truncated = False
-    while not (terminated or truncated):
-        if agent == "follow":
-            action = follower.act_privileged(unwrapped)
-        elif agent == "hover":
-            action = hover
-        else:
-            action = env.action_space.sample()
-        _, reward, terminated, truncated, info = env.step(action)
-        total += reward
-        steps += 1
+    pilot = load_agent(agent)
+    env = _make(env_id, obs_mode=obs_mode or pilot.obs_mode)
+    result = run_episode(pilot, env, seed)
     env.close()
-    return {
-        "env_id": env_id,
-        "agent": agent,
-        "seed": seed,
-        "success": bool(info["is_success"]),
-        "lap_time": info["lap_time"],
-        "gates_passed": info["gates_passed"],
-        "crash_reason": info["crash_reason"],
-        "truncated": bool(truncated),
-        "return": round(total, 4),
-        "steps": steps,
-    }
+    truncated = not (result["success"] or result["crashed"] or result["error"])
+    return {"env_id": env_id, "agent": agent, "seed": seed, **result, "truncated": truncated}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
