@@ -27,6 +27,7 @@ from racebench.track import Track, load_track
 
 OBS_MODES: tuple[str, ...] = ("vision", "state")
 RENDERERS: tuple[str, ...] = ("pybullet", "raycast")
+START_MODES: tuple[str, ...] = ("track", "gates")
 STATE_DIM = 17
 POSITION_SCALE = 10.0  # m per unit
 VELOCITY_SCALE = 10.0  # m/s per unit
@@ -59,7 +60,8 @@ class RaceEnv(gym.Env):
     Episode: success when the last gate (sprint) or every gate of one lap (loop) is passed in order;
     ``terminated`` on success, any contact (gate, obstacle, ground) or leaving the arena;
     ``truncated`` at ``max_episode_time``. ``info``: ``is_success``, ``lap_time`` (s, successful
-    episodes only, else ``None``), ``gates_passed``, ``crashed``, ``crash_reason``, ``reward_terms``, ``time``.
+    episodes only, else ``None``), ``gates_passed``, ``crashed``, ``crash_reason``, ``reward_terms``, ``time``,
+    ``start_gate`` (the first gate to pass: 0 unless ``start_mode="gates"``).
 
     Args:
         track: built-in track name (``"S"``, ``"J"``, ``"Circle"``) or a track YAML path.
@@ -78,6 +80,13 @@ class RaceEnv(gym.Env):
         renderer: depth renderer, ``"pybullet"`` (``getCameraImage`` with TinyRenderer, the reference) or
             ``"raycast"`` (:class:`~racebench.raycast.BatchDepthRenderer`, the same image within a tested
             tolerance, an order of magnitude faster).
+        start_mode: ``"track"`` (every episode starts in the track's start region: evaluation) or ``"gates"``
+            (training: the paper's random initialization "around each starting point", Sec. III-C.2). With
+            ``"gates"`` an episode starts before a gate ``k`` drawn uniformly: ``k = 0`` is the track's start
+            region; for ``k > 0`` the drone starts between gates ``k − 1`` and ``k`` (±``start_spread``, clear
+            of obstacles by the generator's clearance, else at the track start), facing gate ``k``, which is
+            its first gate. The episode then succeeds on passing the remaining
+            gates (``lap_time`` is set; ``info["start_gate"]`` is ``k``, so only ``k = 0`` episodes are laps).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
@@ -99,10 +108,13 @@ class RaceEnv(gym.Env):
         quadrotor: dict[str, Any] | QuadrotorParams | None = None,
         render_mode: str | None = None,
         renderer: str = "pybullet",
+        start_mode: str = "track",
     ) -> None:
         super().__init__()
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
+        if start_mode not in START_MODES:
+            raise ValueError(f"start_mode must be one of {START_MODES}, got {start_mode!r}")
         if renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -149,6 +161,7 @@ class RaceEnv(gym.Env):
 
             self.raycaster = BatchDepthRenderer(self.camera)
         self.quad = Quadrotor(self.params)
+        self.start_mode = start_mode
         self.obs_mode = obs_mode
         self.render_mode = render_mode
         self.desired_speed = float(desired_speed)
@@ -197,12 +210,15 @@ class RaceEnv(gym.Env):
             scene = self.generator.sample_scene(self.np_random)
         elif not isinstance(scene, Scene):
             raise ValueError(f"reset: options['scene'] must be a racebench Scene, got {type(scene).__name__}")
+        self.start_gate = 0
+        if self.start_mode == "gates" and "scene" not in options:
+            scene, self.start_gate = self._start_before_a_gate(scene)
         self.scene = scene
         self.sim.load_scene(scene)
         self.sim.reset_drone(scene.start_position, scene.start_yaw)
         self.quad.reset(hover=True)
         self.drone = self.sim.drone_state()
-        self.next_gate = 0
+        self.next_gate = self.start_gate
         self.steps = 0
         self.ticks = 0  # physics steps this episode; time = ticks / physics_freq, exactly
         self.lap_time: float | None = None
@@ -210,6 +226,30 @@ class RaceEnv(gym.Env):
         self.prev_action = np.array([self.params.hover_action, 0.0, 0.0, 0.0])
         self._arena = (tuple(scene.arena_low.tolist()), tuple(scene.arena_high.tolist()))
         return self._info(dict.fromkeys(REWARD_TERMS, 0.0))
+
+    def _start_before_a_gate(self, scene: Scene) -> tuple[Scene, int]:
+        """``start_mode="gates"``: move the start of ``scene`` before a uniformly drawn gate (see the class doc).
+
+        Candidates run from the middle of the leg towards gate ``k − 1`` (never within 1 m of either gate), each
+        shifted by one random offset within ``start_spread``; the first one at least the generator's clearance
+        from every obstacle and frame (and 0.5 m above the ground) is used, else the track start.
+        """
+        k = int(self.np_random.integers(len(scene.gates)))
+        if k == 0:
+            return scene, 0
+        before, gate = scene.gates[k - 1].center, scene.gates[k].center
+        leg = gate - before
+        length = float(np.linalg.norm(leg))
+        spread = self.track.start.spread
+        jitter = self.np_random.uniform(-spread, spread)
+        for fraction in (0.5, 0.4, 0.3, 0.2):
+            if min(fraction, 1.0 - fraction) * length < 1.0:
+                continue
+            start = before + fraction * leg + jitter
+            if start[2] < 0.5 or scene.point_distance(*start.tolist()) < self.generator.clearance:
+                continue
+            return dataclasses.replace(scene, start_position=start, start_yaw=math.atan2(leg[1], leg[0])), k
+        return scene, 0
 
     def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict]:
         """Apply one CTBR action for ``physics_freq / control_freq`` physics steps."""
@@ -386,11 +426,12 @@ class RaceEnv(gym.Env):
         return {
             "is_success": self.lap_time is not None,
             "lap_time": self.lap_time,
-            "gates_passed": self.next_gate,
+            "gates_passed": self.next_gate - self.start_gate,
             "crashed": self.crash_reason is not None,
             "crash_reason": self.crash_reason,
             "reward_terms": terms,
             "time": self.time,
+            "start_gate": self.start_gate,
         }
 
     # ------------------------------------------------------------ rendering

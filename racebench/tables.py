@@ -126,10 +126,7 @@ def render(frame: pd.DataFrame, bold: set, fmt: str, caption: str) -> str:
     escaped.index = [_latex_escape(str(i)) for i in escaped.index]
     escaped.columns = [_latex_escape(str(c)) for c in escaped.columns]
     body = escaped.style.to_latex(hrules=True, column_format="l" + "c" * len(escaped.columns))
-    return (
-        "\\begin{table}[t]\n\\centering\n"
-        f"\\caption{{{_latex_escape(caption)}}}\n{body}\\end{{table}}\n"
-    )
+    return f"\\begin{{table}}[t]\n\\centering\n\\caption{{{_latex_escape(caption)}}}\n{body}\\end{{table}}\n"
 
 
 def make_table(summary: pd.DataFrame, which: str, fmt: str = "md", ci: bool = True) -> str:

@@ -256,7 +256,6 @@ DATA = Path(__file__).parent / "data"
 FIXED_SUMMARY = DATA / "summary_fixed.csv"
 
 
-
 def test_table_ii_from_a_fixed_csv() -> None:
     expected = (DATA / "table_ii_expected.md").read_text()
     assert make_table(pd.read_csv(FIXED_SUMMARY), "II", "md", ci=False) == expected

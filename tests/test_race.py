@@ -120,3 +120,45 @@ def test_avoid_term_uses_distance_to_nearest_surface() -> None:
     gate = env.scene.gates[0]
     expected = math.hypot(2.0 - gate.depth / 2, gate.inner / 2) - env.params.collision_radius
     assert info["reward_terms"]["avoid"] == pytest.approx(-0.01 / (expected + 0.1), rel=1e-3)
+
+
+@pytest.mark.parametrize("track", ["S", "Circle"])
+def test_gates_start_mode_starts_before_each_gate_and_counts_the_rest(track: str) -> None:
+    env = RaceEnv(track=track, density=3, obs_mode="state", start_mode="gates")
+    seen: dict[int, int] = {}
+    for seed in range(60):
+        obs, info = env.reset(seed=seed)
+        k = info["start_gate"]
+        seen[k] = seen.get(k, 0) + 1
+        assert env.next_gate == k and info["gates_passed"] == 0
+        scene = env.scene
+        if k == 0:
+            assert np.all(np.abs(scene.start_position - env.track.start.center) <= env.track.start.spread + 1e-9)
+            continue
+        before, gate = scene.gates[k - 1].center, scene.gates[k].center
+        # On the leg between the two gates (within the start spread), facing gate k, clear of everything.
+        leg = gate - before
+        along = float((scene.start_position - before) @ leg) / float(leg @ leg)
+        assert 0.1 < along < 0.7
+        assert scene.start_yaw == pytest.approx(math.atan2(leg[1], leg[0]))
+        assert scene.point_distance(*scene.start_position) >= env.generator.clearance
+        # The observation's first vector points at gate k (body frame; the drone starts level, yawed to the leg).
+        c, s = math.cos(scene.start_yaw), math.sin(scene.start_yaw)
+        body = np.array([[c, s], [-s, c]])
+        np.testing.assert_allclose(obs[:2] * 10.0, body @ (gate - scene.start_position)[:2], atol=1e-4)
+    assert set(seen) == {0, 1, 2, 3}, seen
+    env.close()
+
+
+def test_a_run_from_a_mid_track_start_succeeds_on_the_remaining_gates() -> None:
+    env = RaceEnv(track="S", density=0, obs_mode="state", start_mode="gates")
+    for seed in range(20):
+        _, info = env.reset(seed=seed)
+        if info["start_gate"] == 2:
+            break
+    follower, terminated, truncated = GateFollower(), False, False
+    while not (terminated or truncated):
+        _, _, terminated, truncated, info = env.step(follower.act_privileged(env))
+    assert info["is_success"] and info["start_gate"] == 2 and info["gates_passed"] == 2
+    with pytest.raises(ValueError, match="start_mode"):
+        RaceEnv(start_mode="anywhere")

@@ -10,12 +10,13 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from sb3_contrib.common.recurrent.policies import RecurrentMultiInputActorCriticPolicy
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from racebench.agents import SB3Agent
 from racebench.registration import CURRICULUM
-from racebench.training.policies import LSTMShapedGRU
+from racebench.training.policies import LSTMShapedGRU, RecurrentGRUPolicy
 from racebench.training.train import CurriculumCallback, MultiSceneCallback, TrainConfig, make_model, train
 
 BASELINES = sorted((Path(__file__).parents[1] / "baselines").glob("*.yaml"))
@@ -145,6 +146,26 @@ def test_gru_with_lstm_signature_resets_with_zero_state() -> None:
     out, (h, c) = gru(x, zeros)
     reference, h_ref = torch.nn.GRU.forward(gru, x, zeros[0])
     assert torch.equal(out, reference) and torch.equal(h, h_ref) and torch.equal(c, zeros[1])
+
+
+@pytest.mark.parametrize("starts_inside", [False, True], ids=["starts-first-only", "starts-inside"])
+def test_fused_sequence_pass_equals_sb3_contribs_loop(starts_inside: bool) -> None:
+    torch.manual_seed(0)
+    gru = LSTMShapedGRU(5, 7)
+    n_seq, length = 4, 6
+    features = torch.randn(n_seq * length, 5)
+    states = (torch.randn(1, n_seq, 7), torch.zeros(1, n_seq, 7))
+    starts = torch.zeros(n_seq, length)
+    starts[[0, 2], 0] = 1.0  # what sb3-contrib's buffer gives: episode starts begin sequences
+    if starts_inside:
+        starts[1, 3] = 1.0
+    ours, (h, _) = RecurrentGRUPolicy._process_sequence(features, states, starts.flatten(), gru)
+    # The parent's step-by-step loop (it always loops when any start is set).
+    reference, (h_ref, _) = RecurrentMultiInputActorCriticPolicy._process_sequence(
+        features, states, starts.flatten(), gru
+    )
+    torch.testing.assert_close(ours, reference, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(h, h_ref, rtol=1e-5, atol=1e-6)
 
 
 def test_gru_policy_state_is_carried_and_reset_at_episode_start() -> None:
