@@ -1,4 +1,4 @@
-"""Throughput benchmark (``racebench bench``): depth frames/s of both renderers, env steps/s, peak memory.
+"""Throughput benchmark (``racebench bench``): depth frames/s, env steps/s, training samples/s, peak memory.
 
 One run measures, on this machine:
 
@@ -8,6 +8,8 @@ One run measures, on this machine:
   and how well the two images agree on those poses;
 * env steps/s for ``obs_mode="state"`` and ``"vision"``: a single env (vision with either renderer), and a
   :class:`~racebench.vector.RaceVectorEnv` (ray caster) in one process and over two worker processes;
+* training samples/s end to end (rollout + PPO update) of the ``state-ppo`` and ``vision-ppo`` baselines as
+  configured, ``vision-ppo`` with either depth renderer (their ratio), and the share spent in the update;
 * the cost of each part of a step (physics substep, state observation, depth render, depth noise);
 * the CPU time per env step of each vector-env run, summed over its processes (unlike steps/s, not
   lowered by other processes sharing the cores);
@@ -42,6 +44,7 @@ from racebench.vector import RaceVectorEnv
 TARGET_RENDER_RATIO = 10.0
 TARGET_VISION_STEPS = 4000.0  # steps/s, vectorized over 2 processes
 TARGET_STATE_STEPS = 10000.0  # steps/s, vectorized over 2 processes
+TARGET_VISION_TRAINING = 1500.0  # samples/s, vision-ppo end to end (env + update)
 
 
 @dataclass
@@ -54,12 +57,22 @@ class BenchSettings:
     single_steps: int = 3000  # steps of each single-env measurement
     vector_envs: int = 32  # envs of each vector-env measurement
     vector_steps: int = 150  # vector steps (each steps every env) per measurement
+    train_updates: int = 3  # timed PPO updates (rollout + update) of each training measurement, after one warm-up
+    train_small: bool = False  # shrink the training configs to 4 envs x 16 steps (smoke test)
     seed: int = 0
 
     @classmethod
     def quick(cls) -> BenchSettings:
         """A run of a few seconds: every measurement, tiny sizes (numbers only indicative)."""
-        return cls(scenes=1, poses_per_scene=30, single_steps=100, vector_envs=4, vector_steps=25)
+        return cls(
+            scenes=1,
+            poses_per_scene=30,
+            single_steps=100,
+            vector_envs=4,
+            vector_steps=25,
+            train_updates=1,
+            train_small=True,
+        )
 
 
 # ------------------------------------------------------------------ poses
@@ -238,6 +251,63 @@ def _bench_vector(rec: _Recorder, s: BenchSettings, obs_mode: str, processes: in
     return rec.add("steps", name, steps / elapsed, "steps/s")
 
 
+def _bench_training(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
+    """End-to-end training samples/s (env + PPO update) of the ``state-ppo`` and ``vision-ppo`` baselines as
+    configured (``vision-ppo`` with both depth renderers), and the share of time spent in the update."""
+    import dataclasses
+
+    import torch
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+
+    from racebench.training.train import ThreadsCallback, TrainConfig, make_envs, make_model
+
+    class PhaseTimer(BaseCallback):
+        """Seconds spent in PPO updates: from each rollout's end to the next rollout's start."""
+
+        def __init__(self) -> None:
+            super().__init__(0)
+            self.update_s, self.mark = 0.0, 0.0
+
+        def _on_rollout_start(self) -> None:
+            if self.mark:
+                self.update_s += time.perf_counter() - self.mark
+
+        def _on_rollout_end(self) -> None:
+            self.mark = time.perf_counter()
+
+        def _on_step(self) -> bool:
+            return True
+
+    rates: dict[str, float] = {}
+    threads = torch.get_num_threads()
+    for name, renderer in (("state-ppo", "raycast"), ("vision-ppo", "raycast"), ("vision-ppo", "pybullet")):
+        config = dataclasses.replace(TrainConfig.from_yaml(name), renderer=renderer)
+        if s.train_small:
+            config = dataclasses.replace(config, n_envs=4, n_steps=16, batch_size=32)
+        per_update = config.n_envs * config.n_steps
+        torch.set_num_threads(config.torch_threads)
+        env = make_envs(config, s.track, s.seed)
+        try:
+            model = make_model(config, env, s.seed, None)
+            model.learn(per_update, callback=ThreadsCallback(config.torch_threads, config.update_threads))
+            timer = PhaseTimer()
+            callbacks = CallbackList([ThreadsCallback(config.torch_threads, config.update_threads), timer])
+            start = time.perf_counter()
+            model.learn(per_update * s.train_updates, callback=callbacks, reset_num_timesteps=False)
+            elapsed = time.perf_counter() - start
+        finally:
+            env.close()
+            torch.set_num_threads(threads)
+        label = f"{name}" + (f", {renderer} depth" if config.obs_mode == "vision" else "")
+        setup = f"{config.n_envs} envs x {config.n_steps} steps, {config.num_processes} processes"
+        rates[label] = rec.add("training", label, per_update * s.train_updates / elapsed, "samples/s", setup)
+        timer._on_rollout_start()  # close the last update
+        rec.add("training", f"{label}: share of time in PPO updates", 100 * timer.update_s / elapsed, "%")
+    ratio = rates["vision-ppo, raycast depth"] / rates["vision-ppo, pybullet depth"]
+    rec.add("training", "ratio vision-ppo raycast / pybullet", ratio, "x", "same config, same run")
+    return rates
+
+
 def _cpu_seconds(pid: int) -> float:
     """User + system CPU time (s) so far of process ``pid`` (Linux ``/proc``; this process anywhere)."""
     if pid == os.getpid():
@@ -325,6 +395,8 @@ def run_benchmark(
     for obs_mode in ("state", "vision"):
         for processes in (1, 2):
             vector[obs_mode, processes] = _bench_vector(rec, s, obs_mode, processes, peaks)
+    echo("training (env + PPO update, end to end):")
+    training = _bench_training(rec, s)
     echo("parts of a step (µs per call):")
     _bench_parts(rec, s)
     echo("memory:")
@@ -337,6 +409,7 @@ def run_benchmark(
         ("raycast / pybullet frames/s", ratio, TARGET_RENDER_RATIO),
         ("vision steps/s, vector env over 2 processes", vector["vision", 2], TARGET_VISION_STEPS),
         ("state steps/s, vector env over 2 processes", vector["state", 2], TARGET_STATE_STEPS),
+        ("vision-ppo training samples/s", training["vision-ppo, raycast depth"], TARGET_VISION_TRAINING),
     ):
         verdict = "met" if value >= target else "MISSED"
         rec.add("targets", name, value, "", f">= {target:,.0f}: {verdict}")

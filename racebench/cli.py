@@ -99,6 +99,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_train.add_argument("--out", default=None, help="run directory (default runs/<name>-<track>-seed<seed>)")
     p_train.add_argument("--resume", default=None, help="checkpoint .zip to continue from")
     p_train.add_argument("--n-envs", type=int, default=None, help="override the config's n_envs")
+    p_train.add_argument(
+        "--num-processes",
+        type=int,
+        default=None,
+        help="override the config's num_processes (e.g. 1 per run when two share 2 cores)",
+    )
     p_train.add_argument("--eval-episodes", type=int, default=10, help="final evaluation episodes (0: none)")
 
     p_bench = sub.add_parser("bench", help="throughput: depth frames/s of both renderers, env steps/s, memory")
@@ -132,7 +138,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             config = TrainConfig.from_yaml(args.config)
             if args.n_envs is not None:
                 config.n_envs = args.n_envs
-                config.validate(f"{args.config} with --n-envs {args.n_envs}")
+            if args.num_processes is not None:
+                config.num_processes = args.num_processes
+                config.update_threads = args.num_processes  # as many learner threads as cores it was given
+            config.validate(f"{args.config} with the command-line overrides")
         except (OSError, ValueError) as exc:
             raise SystemExit(f"racebench train: {exc}") from exc
         result = train(

@@ -14,7 +14,16 @@ def test_bench_quick_writes_every_measurement(tmp_path, capsys) -> None:
     assert "load average" in printed and "targets (2 cores)" in printed
     rows = list(csv.DictReader(out.open()))
     values = {row["name"]: float(row["value"]) for row in rows}
-    assert {row["section"] for row in rows} == {"depth", "steps", "cpu", "parts", "memory", "targets", "run"}
+    assert {row["section"] for row in rows} == {
+        "depth",
+        "steps",
+        "cpu",
+        "training",
+        "parts",
+        "memory",
+        "targets",
+        "run",
+    }
     for name in (
         "pybullet getCameraImage (TinyRenderer)",
         "raycast, one camera per call",
@@ -26,6 +35,10 @@ def test_bench_quick_writes_every_measurement(tmp_path, capsys) -> None:
         "vector env, vision, 4 envs, 2 processes",
         "peak RSS, this process",
         "peak RSS, largest worker process",
+        "state-ppo",
+        "vision-ppo, raycast depth",
+        "vision-ppo, pybullet depth",
+        "ratio vision-ppo raycast / pybullet",
     ):
         assert values[name] > 0, name
     # Even a tiny run shows the ray caster well ahead, on the same poses, with the same image.

@@ -12,12 +12,22 @@ import pytest
 import torch
 from sb3_contrib.common.recurrent.policies import RecurrentMultiInputActorCriticPolicy
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.vec_env import DummyVecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 from racebench.agents import SB3Agent
 from racebench.registration import CURRICULUM
+from racebench.sb3 import RaceSB3VecEnv
 from racebench.training.policies import LSTMShapedGRU, RecurrentGRUPolicy
-from racebench.training.train import CurriculumCallback, MultiSceneCallback, TrainConfig, make_model, train
+from racebench.training.train import BASELINES as BASELINE_NAMES
+from racebench.training.train import (
+    CurriculumCallback,
+    MultiSceneCallback,
+    ThreadsCallback,
+    TrainConfig,
+    make_envs,
+    make_model,
+    train,
+)
 
 BASELINES = sorted((Path(__file__).parents[1] / "baselines").glob("*.yaml"))
 
@@ -197,6 +207,42 @@ def test_training_smoke_run(tmp_path: Path, config_path: Path) -> None:
     assert list((tmp_path / "checkpoints").glob("*.zip"))
     assert (tmp_path / "eval" / "summary.csv").is_file()
     assert json.loads((tmp_path / "summary.json").read_text())["config"] == config.name
+
+
+def test_training_on_the_batched_vec_env(tmp_path: Path) -> None:
+    """The configs' default path: RaceSB3VecEnv over 2 processes under VecNormalize, scenes and curriculum
+    driven through env_method, threads switched around the update."""
+    config = dataclasses.replace(
+        small(TrainConfig.from_yaml("state-ppo")), vec_env="race", num_processes=2, n_envs=4, scene_groups={1: 2}
+    )
+    env = make_envs(config, "S", seed=3)
+    try:
+        assert isinstance(env, VecNormalize) and isinstance(env.venv.venv, RaceSB3VecEnv)
+        assert len(set(env.venv.venv.process_ids)) == 2
+        assert env.get_attr("start_mode") == ["gates"] * 4
+        assert env.get_attr("weights")[0].heading == 0.0  # level 1 of the baselines: r_theta off
+    finally:
+        env.close()
+    result = train(config, "S", steps=256, seed=3, out=tmp_path, eval_episodes=0)
+    assert result["timesteps"] == 256 and len(pd.read_csv(tmp_path / "progress.csv")) == 2  # 4 envs x 32 steps
+
+
+def test_threads_callback_switches_around_the_update() -> None:
+    callback = ThreadsCallback(collect=1, update=2)
+    before = torch.get_num_threads()
+    try:
+        callback._on_rollout_end()
+        assert torch.get_num_threads() == 2
+        callback._on_rollout_start()
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_builtin_baseline_names_resolve_and_unknown_ones_are_named() -> None:
+    assert {TrainConfig.from_yaml(name).name for name in BASELINE_NAMES} == set(BASELINE_NAMES)
+    with pytest.raises(ValueError, match="neither a built-in baseline"):
+        TrainConfig.from_yaml("vision-ppo-typo")
 
 
 def test_checkpoint_save_load_same_actions(tmp_path: Path) -> None:

@@ -23,6 +23,7 @@ import json
 import time
 from collections import deque
 from dataclasses import dataclass, field, fields
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,27 @@ from racebench.registration import CURRICULUM
 from racebench.sb3 import make_sb3_vec_env
 from racebench.track import BUILTIN_TRACKS
 from racebench.training.policies import CNN_KINDS
+
+BASELINES: tuple[str, ...] = (
+    "vision-ppo",
+    "state-ppo",
+    "vision-no-gru",
+    "vision-no-avoid",
+    "vision-one-step",
+    "vision-com",
+)
+
+
+def baseline_path(name_or_path: str | Path) -> Path:
+    """Resolve a built-in baseline name (:data:`BASELINES`) or a YAML file path to a path."""
+    if str(name_or_path) in BASELINES:
+        return Path(str(resources.files("racebench.baselines").joinpath(f"{name_or_path}.yaml")))
+    path = Path(name_or_path)
+    if not path.is_file():
+        raise ValueError(
+            f"config {str(name_or_path)!r} is neither a built-in baseline {BASELINES} nor an existing file"
+        )
+    return path
 
 
 @dataclass
@@ -80,8 +102,9 @@ class TrainConfig:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> TrainConfig:
-        """Load and validate a config file (``yaml.safe_load``; unknown keys are errors)."""
-        path = Path(path)
+        """Load and validate a config file or a built-in baseline name (``"vision-ppo"``, ...; see
+        :data:`BASELINES`) with ``yaml.safe_load``; unknown keys are errors."""
+        path = baseline_path(path)
         data = yaml.safe_load(path.read_text())
         if not isinstance(data, dict):
             raise ValueError(f"{path}: expected a mapping at the top level")
