@@ -85,8 +85,9 @@ class RaceEnv(gym.Env):
             ``"gates"`` an episode starts before a gate ``k`` drawn uniformly: ``k = 0`` is the track's start
             region; for ``k > 0`` the drone starts between gates ``k − 1`` and ``k`` (±``start_spread``, clear
             of obstacles by the generator's clearance, else at the track start), facing gate ``k``, which is
-            its first gate. The episode then succeeds on passing the remaining
-            gates (``lap_time`` is set; ``info["start_gate"]`` is ``k``, so only ``k = 0`` episodes are laps).
+            its first gate, already flying towards it at up to ``desired_speed``. The episode then succeeds on
+            passing the remaining gates (``lap_time`` is set; ``info["start_gate"]`` is ``k``, so only ``k = 0``
+            episodes are laps).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
@@ -210,12 +211,12 @@ class RaceEnv(gym.Env):
             scene = self.generator.sample_scene(self.np_random)
         elif not isinstance(scene, Scene):
             raise ValueError(f"reset: options['scene'] must be a racebench Scene, got {type(scene).__name__}")
-        self.start_gate = 0
+        self.start_gate, velocity = 0, None
         if self.start_mode == "gates" and "scene" not in options:
-            scene, self.start_gate = self._start_before_a_gate(scene)
+            scene, self.start_gate, velocity = self._start_before_a_gate(scene)
         self.scene = scene
         self.sim.load_scene(scene)
-        self.sim.reset_drone(scene.start_position, scene.start_yaw)
+        self.sim.reset_drone(scene.start_position, scene.start_yaw, velocity)
         self.quad.reset(hover=True)
         self.drone = self.sim.drone_state()
         self.next_gate = self.start_gate
@@ -227,29 +228,31 @@ class RaceEnv(gym.Env):
         self._arena = (tuple(scene.arena_low.tolist()), tuple(scene.arena_high.tolist()))
         return self._info(dict.fromkeys(REWARD_TERMS, 0.0))
 
-    def _start_before_a_gate(self, scene: Scene) -> tuple[Scene, int]:
+    def _start_before_a_gate(self, scene: Scene) -> tuple[Scene, int, np.ndarray | None]:
         """``start_mode="gates"``: move the start of ``scene`` before a uniformly drawn gate (see the class doc).
 
         Candidates run from the middle of the leg towards gate ``k − 1`` (never within 1 m of either gate), each
         shifted by one random offset within ``start_spread``; the first one at least the generator's clearance
-        from every obstacle and frame (and 0.5 m above the ground) is used, else the track start.
+        from every obstacle and frame (and 0.5 m above the ground) is used, else the track start. A mid-track
+        start already flies towards gate ``k`` at a speed drawn uniformly in ``[0, desired_speed]``.
         """
         k = int(self.np_random.integers(len(scene.gates)))
         if k == 0:
-            return scene, 0
+            return scene, 0, None
         before, gate = scene.gates[k - 1].center, scene.gates[k].center
         leg = gate - before
         length = float(np.linalg.norm(leg))
         spread = self.track.start.spread
         jitter = self.np_random.uniform(-spread, spread)
+        velocity = leg / length * self.np_random.uniform(0.0, self.desired_speed)
         for fraction in (0.5, 0.4, 0.3, 0.2):
             if min(fraction, 1.0 - fraction) * length < 1.0:
                 continue
             start = before + fraction * leg + jitter
             if start[2] < 0.5 or scene.point_distance(*start.tolist()) < self.generator.clearance:
                 continue
-            return dataclasses.replace(scene, start_position=start, start_yaw=math.atan2(leg[1], leg[0])), k
-        return scene, 0
+            return dataclasses.replace(scene, start_position=start, start_yaw=math.atan2(leg[1], leg[0])), k, velocity
+        return scene, 0, None
 
     def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict]:
         """Apply one CTBR action for ``physics_freq / control_freq`` physics steps."""

@@ -193,11 +193,12 @@ class Simulation:
             c.resetBasePositionAndOrientation(body, [0.0, 0.0, _PARK_Z], (0.0, 0.0, 0.0, 1.0))
         self._active = active
 
-    def reset_drone(self, position: np.ndarray, yaw: float) -> None:
-        """Put the drone at rest at ``position`` with heading ``yaw``."""
+    def reset_drone(self, position: np.ndarray, yaw: float, velocity: np.ndarray | None = None) -> None:
+        """Put the drone level at ``position`` with heading ``yaw``, at rest or moving at ``velocity`` (m/s)."""
         c = self.client
         c.resetBasePositionAndOrientation(self.drone, position.tolist(), yaw_quaternion(yaw))
-        c.resetBaseVelocity(self.drone, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+        linear = [0.0, 0.0, 0.0] if velocity is None else [float(v) for v in velocity]
+        c.resetBaseVelocity(self.drone, linear, [0.0, 0.0, 0.0])
         self._raw = self._read_state()
 
     def _read_state(self) -> RawState:

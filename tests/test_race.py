@@ -132,8 +132,10 @@ def test_gates_start_mode_starts_before_each_gate_and_counts_the_rest(track: str
         seen[k] = seen.get(k, 0) + 1
         assert env.next_gate == k and info["gates_passed"] == 0
         scene = env.scene
+        velocity = env.drone.velocity
         if k == 0:
             assert np.all(np.abs(scene.start_position - env.track.start.center) <= env.track.start.spread + 1e-9)
+            assert np.all(velocity == 0.0)  # laps start at rest, as evaluated
             continue
         before, gate = scene.gates[k - 1].center, scene.gates[k].center
         # On the leg between the two gates (within the start spread), facing gate k, clear of everything.
@@ -142,6 +144,10 @@ def test_gates_start_mode_starts_before_each_gate_and_counts_the_rest(track: str
         assert 0.1 < along < 0.7
         assert scene.start_yaw == pytest.approx(math.atan2(leg[1], leg[0]))
         assert scene.point_distance(*scene.start_position) >= env.generator.clearance
+        # Already flying towards gate k, along the leg, no faster than v_d.
+        assert np.linalg.norm(velocity) <= env.desired_speed + 1e-9
+        np.testing.assert_allclose(np.cross(velocity, leg), 0.0, atol=1e-9)
+        assert velocity @ leg >= 0.0
         # The observation's first vector points at gate k (body frame; the drone starts level, yawed to the leg).
         c, s = math.cos(scene.start_yaw), math.sin(scene.start_yaw)
         body = np.array([[c, s], [-s, c]])
