@@ -84,6 +84,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_plot.add_argument("results", nargs="+", help="result directories or summary.csv files")
     p_plot.add_argument("--out", default="results/figures", help="output directory for PNGs")
     p_plot.add_argument("--track-env", default=None, help="also draw the 3D track plot of this env id (Fig. 4)")
+    p_curves = sub.add_parser(
+        "curves", help="training curves (the paper's Fig. 5) from `racebench train` run directories"
+    )
+    p_curves.add_argument("runs", nargs="+", help="run directories or their progress.csv files")
+    p_curves.add_argument("--out", default="results/figures/training_curves.png", help="output PNG")
+    p_curves.add_argument("--smooth", type=int, default=20, help="rolling mean over this many updates (default 20)")
 
     p_render = sub.add_parser("render", help="write a GIF of one episode: chase view beside the FPV depth image")
     p_render.add_argument("--agent", default="planner")
@@ -183,6 +189,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             written.append(plots.plot_track_3d(source, args.track_env, out / f"track_{args.track_env}.png"))
         for path in written:
             print(f"wrote {path}")
+    elif args.command == "curves":
+        from racebench.plots import plot_training_curves
+
+        try:
+            print(f"wrote {plot_training_curves(args.runs, args.out, args.smooth)}")
+        except ValueError as exc:
+            raise SystemExit(f"racebench curves: {exc}") from exc
     elif args.command == "render":
         from racebench.plots import render_episode_gif
 

@@ -215,6 +215,44 @@ def _compose(rgb: np.ndarray, depth: np.ndarray) -> Image.Image:
     return canvas
 
 
+def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int = 20) -> Path:
+    """The paper's Fig. 5 from training runs: mean episode return (rolling mean over ``smooth`` updates),
+    success rate from the track start, and curriculum level, against environment steps.
+
+    ``runs``: run directories (holding ``progress.csv``) or ``progress.csv`` files; each is labelled by its
+    ``config.yaml`` name when present, else by its directory name.
+    """
+    import yaml
+
+    fig, axes = plt.subplots(3, 1, figsize=(6.4, 6.4), sharex=True, height_ratios=[2, 1.4, 1])
+    for run in runs:
+        run = Path(run)
+        csv_path = run / "progress.csv" if run.is_dir() else run
+        if not csv_path.is_file():
+            raise ValueError(f"{run}: no progress.csv (is it a `racebench train` run directory?)")
+        progress = pd.read_csv(csv_path)
+        missing = {"timesteps", "mean_return", "success_rate", "level"} - set(progress.columns)
+        if missing:
+            raise ValueError(f"{csv_path}: missing columns {sorted(missing)}")
+        config = csv_path.parent / "config.yaml"
+        label = yaml.safe_load(config.read_text()).get("name") if config.is_file() else csv_path.parent.name
+        steps = progress["timesteps"] / 1e6
+        window = dict(window=smooth, min_periods=1)
+        (line,) = axes[0].plot(steps, progress["mean_return"].rolling(**window).mean(), label=label)
+        axes[1].plot(steps, 100 * progress["success_rate"].rolling(**window).mean(), color=line.get_color())
+        axes[2].step(steps, progress["level"], where="post", color=line.get_color())
+    axes[0].set_ylabel("mean episode return")
+    axes[0].legend(loc="best", fontsize=8)
+    axes[1].set_ylabel("success from start [%]")
+    axes[1].set_ylim(-2, 102)
+    axes[2].set_ylabel("level")
+    axes[2].set_yticks([1, 2, 3])
+    axes[2].set_xlabel("environment steps [millions]")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
 def _save(fig, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -266,3 +266,30 @@ def test_table_latex_is_booktabs_with_bold_and_ci() -> None:
     assert "\\toprule" in text and "\\midrule" in text and "\\bottomrule" in text
     assert "\\textbf{90 [60--98]}" in text
     assert "planner (privileged)" in text
+
+
+def test_training_curves_figure_from_progress_files(tmp_path: Path) -> None:
+    from racebench.plots import plot_training_curves
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("name: my-run\n")
+    pd.DataFrame(
+        {
+            "timesteps": [2048, 4096, 6144],
+            "episodes": [10, 20, 30],
+            "mean_return": [-5.0, -1.0, 3.0],
+            "success_rate": [0.0, None, 0.5],
+            "level": [1, 1, 2],
+            "samples_per_s": [1000.0] * 3,
+            "wall_s": [2.0, 4.0, 6.0],
+        }
+    ).to_csv(run / "progress.csv", index=False)
+    out = plot_training_curves([run], tmp_path / "curves.png")
+    assert out.is_file() and out.stat().st_size > 10_000
+    bad = tmp_path / "bad.csv"
+    bad.write_text("timesteps,mean_return\n1,2\n")
+    with pytest.raises(ValueError, match="missing columns"):
+        plot_training_curves([bad], tmp_path / "x.png")
+    with pytest.raises(ValueError, match="no progress.csv"):
+        plot_training_curves([tmp_path / "nowhere"], tmp_path / "x.png")

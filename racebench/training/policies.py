@@ -1,8 +1,10 @@
 """The paper's policy network (Fig. 2) on stable-baselines3 / sb3-contrib building blocks.
 
-State MLP (2 layers) and depth CNN (3 conv + max-pool layers) → concatenate → GRU (256) → actor and
-critic MLPs [192, 96] → CTBR. sb3-contrib's ``RecurrentPPO`` supplies the recurrent machinery (hidden
-state carried across steps, reset at episode starts, training on sequences); it is written for LSTMs, so
+State MLP (2 layers) and depth CNN (3 conv layers, :func:`depth_cnn`) → concatenate → GRU (256) → actor
+MLP [192, 96] → CTBR; the critic has its own GRU (256) on the same features and its own MLP [192, 96]
+(``train.make_model`` explains why it does not share the actor's). sb3-contrib's ``RecurrentPPO`` supplies
+the recurrent machinery (hidden state carried across steps, reset at episode starts, training on
+sequences); it is written for LSTMs, so
 :class:`LSTMShapedGRU` gives a GRU the LSTM call signature (the unused cell state is carried as zeros) and
 :class:`RecurrentGRUPolicy` swaps it in. The feed-forward ablation uses the same extractor with a dense
 256-unit layer where the GRU was.

@@ -4,14 +4,17 @@ One config (a YAML file under ``baselines/``) names everything: observation mode
 feed-forward, reward overrides, curriculum, multi-scene groups, randomisation and PPO hyperparameters.
 The whole algorithm is here:
 
-1. ``n_envs`` copies of ``RaceEnv`` (``SubprocVecEnv`` across processes) seeded below the evaluation seeds;
+1. ``n_envs`` copies of ``RaceEnv`` (batched in ``num_processes`` processes by ``RaceSB3VecEnv``, ray-cast
+   depth, episodes starting before any gate) seeded below the evaluation seeds, rewards normalised by
+   ``VecNormalize``;
 2. :class:`CurriculumCallback`: a rolling success rate over the last ``window`` finished episodes; above
    ``promote_at`` the envs move to the next level (``RaceEnv.set_task``); each promotion is logged with
    its timestep. "One-step" training starts at the last level;
 3. :class:`MultiSceneCallback`: at every rollout start the envs are split into K groups (K per level);
    each group gets one new obstacle layout (and gate perturbation) shared by its envs (``set_layout``),
    while start poses stay random per episode;
-4. PPO (``RecurrentPPO`` with :class:`~racebench.training.policies.RecurrentGRUPolicy`, or ``PPO``), with
+4. PPO (``RecurrentPPO`` with :class:`~racebench.training.policies.RecurrentGRUPolicy`, or ``PPO``; torch
+   threads switched around the update by :class:`ThreadsCallback`), with
    TensorBoard logs, a CSV row per update (:class:`ProgressCSVCallback`), periodic checkpoints, resume,
    and a final evaluation with the common evaluator.
 """
@@ -391,8 +394,11 @@ def make_model(config: TrainConfig, env: VecEnv, seed: int, tensorboard: str | N
             features_extractor_class=RaceFeatures,
             features_extractor_kwargs=features_kwargs,
             lstm_hidden_size=config.gru_hidden,
-            shared_lstm=True,
-            enable_critic_lstm=False,
+            # The critic gets its own GRU on the shared features: with sb3-contrib's shared_lstm the critic reads
+            # the actor's GRU output detached, so the value loss never shapes the recurrent features; with it
+            # no level-1 run learned here (baselines/experiments/README.md).
+            shared_lstm=False,
+            enable_critic_lstm=True,
             net_arch=dict(pi=arch, vf=arch),
             log_std_init=config.log_std_init,
         )
