@@ -66,7 +66,8 @@ class RaceEnv(gym.Env):
     Args:
         track: built-in track name (``"S"``, ``"J"``, ``"Circle"``) or a track YAML path.
         density: obstacles per obstacle region ("per 2 gates"); 0 = obstacle-free.
-        gate_shift: gates shifted uniformly by ±gate_shift m on x, y, z each episode.
+        gate_shift: gates shifted uniformly by ±gate_shift m on x, y (and z, unless ``gate_shift_z`` is given)
+            each episode.
         obs_mode: ``"vision"`` or ``"state"``.
         desired_speed: v_d in m/s (observation and ``r_vd``).
         reward_weights: overrides of :class:`~racebench.reward.RewardWeights` fields.
@@ -88,6 +89,8 @@ class RaceEnv(gym.Env):
             its first gate, already flying towards it at up to ``desired_speed``. The episode then succeeds on
             passing the remaining gates (``lap_time`` is set; ``info["start_gate"]`` is ``k``, so only ``k = 0``
             episodes are laps).
+        gate_shift_z: ± half-range of the gates' vertical shift in m (default ``gate_shift``; the paper trains
+            with ±1 m on x/y and ±0.3 m on z).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
@@ -110,6 +113,7 @@ class RaceEnv(gym.Env):
         render_mode: str | None = None,
         renderer: str = "pybullet",
         start_mode: str = "track",
+        gate_shift_z: float | None = None,
     ) -> None:
         super().__init__()
         if obs_mode not in OBS_MODES:
@@ -152,6 +156,7 @@ class RaceEnv(gym.Env):
             density=density,
             kind=obstacle_kind,
             gate_shift=gate_shift,
+            gate_shift_z=gate_shift_z,
             drone_radius=self.params.collision_radius,
         )
         self.camera = DepthCamera(noise_std=depth_noise_std)
@@ -341,17 +346,19 @@ class RaceEnv(gym.Env):
         desired_speed: float | None = None,
         reward_weights: dict[str, float] | None = None,
         gate_shift: float | None = None,
+        gate_shift_z: float | None = None,
     ) -> None:
         """Change the task between episodes (curriculum levels); ``None`` keeps a setting as it is.
 
         ``reward_weights`` overrides the paper's defaults (not the current weights), like the constructor.
         """
-        if density is not None or gate_shift is not None:
+        if density is not None or gate_shift is not None or gate_shift_z is not None:
             self.generator = ObstacleGenerator(
                 self.track,
                 density=self.generator.density if density is None else density,
                 kind=self.generator.kind,
                 gate_shift=self.generator.gate_shift if gate_shift is None else gate_shift,
+                gate_shift_z=self.generator.gate_shift_z if gate_shift_z is None else gate_shift_z,
                 drone_radius=self.params.collision_radius,
             )
         if desired_speed is not None:

@@ -452,6 +452,7 @@ class ObstacleGenerator:
         kind: str = "cylinder",
         gate_shift: float = 0.0,
         clearance: float = 0.5,
+        gate_shift_z: float | None = None,
         drone_radius: float = 0.12,
         corridor_margin: float = 0.08,
         pole_height: float = 3.0,
@@ -474,6 +475,7 @@ class ObstacleGenerator:
             raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
         for name, value, positive in (
             ("gate_shift", gate_shift, False),
+            ("gate_shift_z", gate_shift if gate_shift_z is None else gate_shift_z, False),
             ("clearance", clearance, False),
             ("drone_radius", drone_radius, True),
             ("corridor_margin", corridor_margin, False),
@@ -492,6 +494,7 @@ class ObstacleGenerator:
         self.density = int(density)
         self.kind = kind
         self.gate_shift = float(gate_shift)
+        self.gate_shift_z = self.gate_shift if gate_shift_z is None else float(gate_shift_z)
         self.clearance = float(clearance)
         self.drone_radius = float(drone_radius)
         self.corridor_margin = float(corridor_margin)
@@ -554,10 +557,11 @@ class ObstacleGenerator:
         )
 
     def _perturb_gates(self, rng: np.random.Generator) -> tuple[Gate, ...]:
-        """Shift each gate by up to ``gate_shift`` on x/y and z, keeping its frame above the ground."""
+        """Shift each gate by up to ``gate_shift`` on x/y and ``gate_shift_z`` on z, keeping its frame above the
+        ground."""
         gates = self.track.gates
-        delta = self.gate_shift
-        if delta == 0.0:
+        delta, delta_z = self.gate_shift, self.gate_shift_z
+        if delta == 0.0 and delta_z == 0.0:
             return gates
         shift_xy = rng.uniform(-delta, delta, size=(len(gates), 2))
         unit = rng.uniform(0.0, 1.0, size=len(gates))
@@ -565,10 +569,10 @@ class ObstacleGenerator:
         for gate, dxy, u in zip(gates, shift_xy, unit, strict=True):
             z = float(gate.center[2])
             # a track gate lower than outer/2 + 0.1 keeps its own height as the lowest option
-            z_low = max(z - delta, min(z, gate.outer / 2.0 + 0.1))
+            z_low = max(z - delta_z, min(z, gate.outer / 2.0 + 0.1))
             moved.append(
                 gate.moved(
-                    np.array([gate.center[0] + dxy[0], gate.center[1] + dxy[1], z_low + u * (z + delta - z_low)])
+                    np.array([gate.center[0] + dxy[0], gate.center[1] + dxy[1], z_low + u * (z + delta_z - z_low)])
                 )
             )
         return tuple(moved)

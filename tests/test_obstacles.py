@@ -290,6 +290,29 @@ def test_same_seed_same_scene_and_different_seeds_differ() -> None:
         assert d["obstacles"] != first["obstacles"] and d["gates"] != first["gates"] and d["start"] != first["start"]
 
 
+def test_vertical_gate_shift_has_its_own_range() -> None:
+    """The paper's randomisation: ±1 m on x/y, ±0.3 m on z; without gate_shift_z, z uses gate_shift."""
+    track = _track("S")
+    gen = ObstacleGenerator(track, density=0, gate_shift=1.0, gate_shift_z=0.3)
+    shifts = np.array(
+        [
+            g.center - o.center
+            for seed in range(60)
+            for g, o in zip(gen.sample_scene(np.random.default_rng(seed)).gates, track.gates, strict=True)
+        ]
+    )
+    assert np.all(np.abs(shifts[:, :2]) <= 1.0) and np.abs(shifts[:, :2]).max() > 0.8
+    assert np.all(np.abs(shifts[:, 2]) <= 0.3 + TOL) and np.abs(shifts[:, 2]).max() > 0.2
+    same = ObstacleGenerator(track, density=2, gate_shift=0.5)
+    explicit = ObstacleGenerator(track, density=2, gate_shift=0.5, gate_shift_z=0.5)
+    for seed in range(5):
+        a = same.sample_scene(np.random.default_rng(seed)).to_dict()
+        b = explicit.sample_scene(np.random.default_rng(seed)).to_dict()
+        assert a == b
+    with pytest.raises(ValueError, match="gate_shift_z"):
+        ObstacleGenerator(track, gate_shift_z=-0.1)
+
+
 def test_gate_perturbation_stays_within_bounds_and_above_ground() -> None:
     track = _track("J")
     low_gates = tuple(g.moved(np.array([g.center[0], g.center[1], 0.7])) for g in track.gates)

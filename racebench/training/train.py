@@ -82,6 +82,7 @@ class TrainConfig:
     start_spread: tuple[float, float, float] = (0.5, 0.5, 0.5)
     start_mode: str = "gates"  # RaceEnv start_mode: "gates" starts episodes before any gate (paper Sec. III-C.2)
     gate_shift: float = 0.3
+    gate_shift_z: float | None = None  # vertical gate shift (default gate_shift; the paper: ±1 m x/y, ±0.3 m z)
     depth_noise_std: float = 0.02
     renderer: str | None = "raycast"  # training depth: the tested TinyRenderer match, ~30x faster than PyBullet's
     n_envs: int = 8
@@ -163,6 +164,7 @@ class TrainConfig:
             "start_spread": self.start_spread,
             "start_mode": self.start_mode,
             "gate_shift": self.gate_shift,
+            "gate_shift_z": self.gate_shift_z,
             "depth_noise_std": self.depth_noise_std,
             "density": level.get("density", 3),
             "desired_speed": level.get("desired_speed", 8.0),
