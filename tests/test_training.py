@@ -221,6 +221,12 @@ def test_training_on_the_batched_vec_env(tmp_path: Path) -> None:
         assert len(set(env.venv.venv.process_ids)) == 2
         assert env.get_attr("start_mode") == ["gates"] * 4
         assert env.get_attr("weights")[0].heading == 0.0  # level 1 of the baselines: r_theta off
+        # Scene groups through the batched env and the VecNormalize wrapper: {0, 1} and {2, 3} share a layout.
+        callback = MultiSceneCallback(config, CurriculumCallback(config))  # gates shifted ±0.3 m: layouts differ
+        callback.init_callback(FakeModel(env))
+        callback._on_rollout_start()
+        gates = [json.dumps(layout.to_dict()["gates"]) for layout in env.get_attr("layout")]
+        assert gates[0] == gates[1] and gates[2] == gates[3] and gates[0] != gates[2]
     finally:
         env.close()
     result = train(config, "S", steps=256, seed=3, out=tmp_path, eval_episodes=0)
