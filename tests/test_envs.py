@@ -144,6 +144,7 @@ def test_observation_layout_at_reset() -> None:
         "crash_reason": None,
         "reward_terms": dict.fromkeys(("prog", "theta", "cmd", "vd", "avoid", "pass", "crash"), 0.0),
         "time": 0.0,
+        "start_gate": 0,
     }
     env.close()
 

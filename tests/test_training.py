@@ -26,6 +26,7 @@ from racebench.training.train import (
     TrainConfig,
     make_envs,
     make_model,
+    resume_curriculum,
     train,
 )
 
@@ -269,3 +270,33 @@ def test_checkpoint_save_load_same_actions(tmp_path: Path) -> None:
     # Resume continues from the checkpoint and the saved curriculum level.
     resumed = train(config, "S", steps=64, seed=0, out=tmp_path, resume=result["checkpoint"], eval_episodes=0)
     assert resumed["timesteps"] >= 128
+
+
+def test_resume_after_a_killed_run(tmp_path: Path) -> None:
+    """A run killed after its last checkpoint resumes at that checkpoint's level, with its progress rows."""
+    config = small(TrainConfig.from_yaml(BASELINES[0].parent / "state-ppo.yaml"))
+    first = train(config, "S", steps=64, seed=0, out=tmp_path, eval_episodes=0)
+    at = first["timesteps"]
+    # The killed run went on past the checkpoint: it logged more rows and a promotion the checkpoint never saw.
+    rows = pd.read_csv(tmp_path / "progress.csv")
+    later = rows.iloc[[-1]].assign(timesteps=at + 1000, level=2, episodes=999, wall_s=99.0)
+    pd.concat([rows, later]).to_csv(tmp_path / "progress.csv", index=False)
+    promoted = {"level": 2, "promotions": [{"level": 2, "timestep": at + 1}]}
+    (tmp_path / "curriculum.json").write_text(json.dumps(promoted))
+    assert (tmp_path / "vecnormalize.pkl").exists()
+
+    resumed = train(config, "S", steps=64, seed=0, out=tmp_path, resume=first["checkpoint"], eval_episodes=0)
+    assert resumed["level"] == 1 and resumed["promotions"] == []
+    progress = pd.read_csv(tmp_path / "progress.csv")
+    assert progress["timesteps"].is_monotonic_increasing and progress["timesteps"].iloc[-1] == resumed["timesteps"]
+    assert (progress["level"] == 1).all() and progress["episodes"].is_monotonic_increasing
+
+
+def test_resume_curriculum_from_progress_alone(tmp_path: Path) -> None:
+    """Without ``curriculum.json`` (a run killed before writing it) the level column of the CSV tells."""
+    pd.DataFrame(
+        {"timesteps": [100, 200, 300, 400], "episodes": [1, 2, 3, 4], "level": [1, 2, 2, 3], "wall_s": [1, 2, 3, 4]}
+    ).to_csv(tmp_path / "progress.csv", index=False)
+    assert resume_curriculum(tmp_path, 350, 1) == (2, [{"level": 2, "timestep": 200}])
+    assert resume_curriculum(tmp_path, 400, 1) == (3, [{"level": 2, "timestep": 200}, {"level": 3, "timestep": 400}])
+    assert resume_curriculum(tmp_path / "nothing", 400, 1) == (1, [])

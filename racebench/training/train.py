@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import torch
 import yaml
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
@@ -186,12 +187,25 @@ class CurriculumCallback(BaseCallback):
     Only episodes from the track start count (:func:`is_lap`): success then means a whole run, as evaluated.
     """
 
-    def __init__(self, config: TrainConfig, level: int | None = None, verbose: int = 0) -> None:
+    def __init__(
+        self,
+        config: TrainConfig,
+        level: int | None = None,
+        verbose: int = 0,
+        state_file: Path | None = None,
+        promotions: list[dict[str, int]] | None = None,
+    ) -> None:
         super().__init__(verbose)
         self.config = config
         self.level = config.start_level if level is None else level
         self.successes: deque[bool] = deque(maxlen=config.window)
-        self.promotions: list[dict[str, int]] = []
+        self.promotions: list[dict[str, int]] = list(promotions or [])
+        self.state_file = state_file
+
+    def save_state(self) -> None:
+        """Write level and promotions to ``state_file`` (at every promotion, so a killed run can resume)."""
+        if self.state_file is not None:
+            self.state_file.write_text(json.dumps({"level": self.level, "promotions": self.promotions}))
 
     @property
     def last_level(self) -> int:
@@ -212,8 +226,12 @@ class CurriculumCallback(BaseCallback):
         self.training_env.env_method("set_task", **self.config.level_kwargs(self.level))
         self.successes.clear()
         self.promotions.append({"level": self.level, "timestep": int(self.num_timesteps)})
+        self.save_state()
         if self.verbose:
             print(f"curriculum: level {self.level} at step {self.num_timesteps}")
+
+    def _on_training_start(self) -> None:
+        self.save_state()
 
     def _on_step(self) -> bool:
         for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
@@ -271,9 +289,17 @@ class ProgressCSVCallback(BaseCallback):
         self.last_steps = 0
 
     def _on_training_start(self) -> None:
-        if not self.path.exists():
-            with self.path.open("w", newline="") as f:
-                csv.writer(f).writerow(self.COLUMNS)
+        self.last_steps = self.num_timesteps
+        rows = _read_progress(self.path)
+        if rows is None or self.num_timesteps == 0:  # a fresh run starts a fresh file
+            rows = pd.DataFrame(columns=list(self.COLUMNS))
+        # On resume, rows logged after the checkpoint belong to the lost stretch of the killed run: drop
+        # them, and continue the episode count and wall clock where the kept rows end.
+        kept = rows[rows["timesteps"] <= self.num_timesteps]
+        kept.to_csv(self.path, index=False)
+        if len(kept):
+            self.episodes = int(kept["episodes"].iloc[-1])
+            self.started -= float(kept["wall_s"].iloc[-1])
 
     def _on_step(self) -> bool:
         for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
@@ -325,6 +351,32 @@ class ThreadsCallback(BaseCallback):
 
     def _on_step(self) -> bool:
         return True
+
+
+def _read_progress(path: Path) -> pd.DataFrame | None:
+    """The progress CSV of a run, or ``None`` if there is none yet."""
+    if not path.exists() or path.stat().st_size == 0:
+        return None
+    return pd.read_csv(path)
+
+
+def resume_curriculum(out: Path, timesteps: int, start_level: int) -> tuple[int, list[dict[str, int]]]:
+    """Level and promotions of a run resumed at ``timesteps``: promotions after that step are forgotten.
+
+    Read from ``curriculum.json``; a run killed before this file existed is recovered from the level column
+    of ``progress.csv`` (promotion steps then have rollout granularity).
+    """
+    state_file, rows = out / "curriculum.json", _read_progress(out / "progress.csv")
+    if state_file.exists():
+        promotions = json.loads(state_file.read_text())["promotions"]
+    elif rows is not None:
+        changed = rows[rows["level"].diff().fillna(0) > 0]
+        promotions = [{"level": int(r.level), "timestep": int(r.timesteps)} for r in changed.itertuples()]
+    else:
+        promotions = []
+    promotions = [p for p in promotions if p["timestep"] <= timesteps]
+    level = max([start_level] + [int(p["level"]) for p in promotions])
+    return level, promotions
 
 
 def linear_schedule(start: float, end: float):
@@ -436,25 +488,30 @@ def train(
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(yaml.safe_dump({k: _plain(v) for k, v in config.__dict__.items()}))
     state_file = out / "curriculum.json"
-    level = config.start_level
-    if resume is not None and state_file.exists():
-        level = json.loads(state_file.read_text())["level"]
 
     torch.set_num_threads(config.torch_threads)  # measured: 7x faster updates than torch's default here
     env = make_envs(config, track, seed)
-    if level != config.start_level:
-        env.env_method("set_task", **config.level_kwargs(level))
     if resume is not None:
+        _restore_reward_stats(env, Path(resume))
         model = _load_model(resume, env)
+        level, promotions = resume_curriculum(out, model.num_timesteps, config.start_level)
     else:
         model = make_model(config, env, seed, str(out / "tb"))
-    curriculum = CurriculumCallback(config, level=level, verbose=1)
+        level, promotions = config.start_level, []
+    if level != config.start_level:
+        env.env_method("set_task", **config.level_kwargs(level))
+    curriculum = CurriculumCallback(config, level=level, verbose=1, state_file=state_file, promotions=promotions)
     callbacks = CallbackList(
         [
             curriculum,
             MultiSceneCallback(config, curriculum),
             ProgressCSVCallback(out / "progress.csv", curriculum),
-            CheckpointCallback(max(checkpoint_every // config.n_envs, 1), str(out / "checkpoints"), config.name),
+            CheckpointCallback(
+                max(checkpoint_every // config.n_envs, 1),
+                str(out / "checkpoints"),
+                config.name,
+                save_vecnormalize=True,
+            ),
             ThreadsCallback(config.torch_threads, config.update_threads),
         ]
     )
@@ -463,7 +520,9 @@ def train(
     wall = time.perf_counter() - started
     final = out / f"{config.name}-{track}.zip"
     model.save(final)
-    state_file.write_text(json.dumps({"level": curriculum.level, "promotions": curriculum.promotions}))
+    if isinstance(env, VecNormalize):
+        env.save(str(out / "vecnormalize.pkl"))
+    curriculum.save_state()
     env.close()
     summary: dict[str, Any] = {
         "config": config.name,
@@ -484,6 +543,26 @@ def train(
         summary["eval"] = {k: _plain(result[k]) for k in ("n", "successes", "success_rate", "lap_time_mean")}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _restore_reward_stats(env: VecEnv, checkpoint: Path) -> None:
+    """Load the reward-normalisation statistics saved beside ``checkpoint`` (if any) into ``env``.
+
+    ``CheckpointCallback`` writes ``<prefix>_vecnormalize_<n>_steps.pkl`` next to ``<prefix>_<n>_steps.zip``;
+    a final model has ``vecnormalize.pkl`` in its run folder. Without them the resumed run re-estimates the
+    return scale from scratch, which briefly changes the size of the advantages.
+    """
+    if not isinstance(env, VecNormalize):
+        return
+    prefix, _, rest = checkpoint.name.rpartition("_")
+    if rest == "steps.zip":
+        stem, _, n = prefix.rpartition("_")
+        stats = checkpoint.with_name(f"{stem}_vecnormalize_{n}_steps.pkl")
+    else:
+        stats = checkpoint.parent / "vecnormalize.pkl"
+    if stats.exists():
+        saved = VecNormalize.load(str(stats), env.venv)
+        env.ret_rms = saved.ret_rms  # rewards only: the policy never sees normalised observations
 
 
 def _load_model(path: str | Path, env: VecEnv) -> Any:
