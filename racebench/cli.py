@@ -100,7 +100,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_train = sub.add_parser("train", help="train a baseline (PPO + GRU, curriculum, multi-scene) from a YAML config")
     p_train.add_argument("--config", required=True, help="baselines/<name>.yaml")
     p_train.add_argument("--track", default="S", choices=["S", "J", "Circle"])
-    p_train.add_argument("--steps", type=int, default=200_000, help="environment steps (default 200,000)")
+    p_train.add_argument(
+        "--steps", type=int, default=200_000, help="environment steps (default 200,000; with --resume: steps to add)"
+    )
     p_train.add_argument("--seed", type=int, default=0, help="training seed (< 1,000,000: evaluation seeds are above)")
     p_train.add_argument("--out", default=None, help="run directory (default runs/<name>-<track>-seed<seed>)")
     p_train.add_argument("--resume", default=None, help="checkpoint .zip to continue from")

@@ -85,10 +85,10 @@ class RaceEnv(gym.Env):
             (training: the paper's random initialization "around each starting point", Sec. III-C.2). With
             ``"gates"`` an episode starts before a gate ``k`` drawn uniformly: ``k = 0`` is the track's start
             region; for ``k > 0`` the drone starts between gates ``k − 1`` and ``k`` (±``start_spread``, clear
-            of obstacles by the generator's clearance, else at the track start), facing gate ``k``, which is
-            its first gate, already flying towards it at up to ``desired_speed``. The episode then succeeds on
-            passing the remaining gates (``lap_time`` is set; ``info["start_gate"]`` is ``k``, so only ``k = 0``
-            episodes are laps).
+            of obstacles by the generator's clearance, else at the track start), facing along the leg from gate
+            ``k − 1`` to gate ``k``, which is its first gate, already flying along it at up to
+            ``desired_speed``. The episode then succeeds on passing the remaining gates (``lap_time`` is set;
+            ``info["start_gate"]`` is ``k``, so only ``k = 0`` episodes are laps).
         gate_shift_z: ± half-range of the gates' vertical shift in m (default ``gate_shift``; the paper trains
             with ±1 m on x/y and ±0.3 m on z).
     """
@@ -151,6 +151,8 @@ class RaceEnv(gym.Env):
                 raise ValueError(f"quadrotor: unknown parameter {unknown[0]!r} (known: {sorted(known)})")
             self.params = QuadrotorParams(**(quadrotor or {}))
         self.weights = RewardWeights.from_overrides(reward_weights)
+        self._gate_shift_z = gate_shift_z  # None: the vertical range follows gate_shift, also after set_task
+        self._next_task: dict[str, Any] = {}  # desired speed / reward weights staged by set_task
         self.generator = ObstacleGenerator(
             self.track,
             density=density,
@@ -202,6 +204,9 @@ class RaceEnv(gym.Env):
         For batched stepping (:class:`~racebench.vector.RaceVectorEnv`), which renders many envs' depth at once.
         """
         super().reset(seed=seed)
+        for name, value in self._next_task.items():  # staged by set_task
+            setattr(self, name, value)
+        self._next_task = {}
         options = options or {}
         unknown = sorted(set(options) - {"scene"})
         if unknown:
@@ -236,10 +241,11 @@ class RaceEnv(gym.Env):
     def _start_before_a_gate(self, scene: Scene) -> tuple[Scene, int, np.ndarray | None]:
         """``start_mode="gates"``: move the start of ``scene`` before a uniformly drawn gate (see the class doc).
 
-        Candidates run from the middle of the leg towards gate ``k − 1`` (never within 1 m of either gate), each
-        shifted by one random offset within ``start_spread``; the first one at least the generator's clearance
-        from every obstacle and frame (and 0.5 m above the ground) is used, else the track start. A mid-track
-        start already flies towards gate ``k`` at a speed drawn uniformly in ``[0, desired_speed]``.
+        Candidates run from the middle of the leg towards gate ``k − 1`` (their leg point at least 1 m from
+        either gate), each shifted by one random offset within ``start_spread``; the first one at least the
+        generator's clearance from every obstacle and frame (and 0.5 m above the ground) is used, else the track
+        start. A mid-track start already flies along the leg (gate ``k − 1`` → ``k``) at a speed drawn
+        uniformly in ``[0, desired_speed]``.
         """
         k = int(self.np_random.integers(len(scene.gates)))
         if k == 0:
@@ -348,25 +354,29 @@ class RaceEnv(gym.Env):
         gate_shift: float | None = None,
         gate_shift_z: float | None = None,
     ) -> None:
-        """Change the task between episodes (curriculum levels); ``None`` keeps a setting as it is.
+        """Change the task from the next episode on (curriculum levels); ``None`` keeps a setting as it is.
 
+        The episode in flight keeps its desired speed and reward weights (they apply at the next reset); the
+        scene settings act on every scene drawn from now on (:meth:`reset`, :meth:`sample_layout`).
         ``reward_weights`` overrides the paper's defaults (not the current weights), like the constructor.
         """
         if density is not None or gate_shift is not None or gate_shift_z is not None:
+            if gate_shift_z is not None:
+                self._gate_shift_z = gate_shift_z
             self.generator = ObstacleGenerator(
                 self.track,
                 density=self.generator.density if density is None else density,
                 kind=self.generator.kind,
                 gate_shift=self.generator.gate_shift if gate_shift is None else gate_shift,
-                gate_shift_z=self.generator.gate_shift_z if gate_shift_z is None else gate_shift_z,
+                gate_shift_z=self._gate_shift_z,
                 drone_radius=self.params.collision_radius,
             )
         if desired_speed is not None:
             if not desired_speed > 0:
                 raise ValueError(f"desired_speed must be > 0 m/s, got {desired_speed!r}")
-            self.desired_speed = float(desired_speed)
+            self._next_task["desired_speed"] = float(desired_speed)
         if reward_weights is not None:
-            self.weights = RewardWeights.from_overrides(reward_weights)
+            self._next_task["weights"] = RewardWeights.from_overrides(reward_weights)
 
     def sample_layout(self) -> Scene:
         """Draw a new scene from this env's ``np_random`` (for :meth:`set_layout` on a group of envs)."""

@@ -168,3 +168,27 @@ def test_a_run_from_a_mid_track_start_succeeds_on_the_remaining_gates() -> None:
     assert info["is_success"] and info["start_gate"] == 2 and info["gates_passed"] == 2
     with pytest.raises(ValueError, match="start_mode"):
         RaceEnv(start_mode="anywhere")
+
+
+def test_set_task_applies_from_the_next_episode() -> None:
+    """A curriculum step changes the running episode's neither speed nor reward, but the next one's both."""
+    env = RaceEnv(track="S", obs_mode="state", desired_speed=3.0)
+    env.reset(seed=0)
+    env.set_task(desired_speed=8.0, reward_weights={"speed": 0.0})
+    obs, *_ = env.step(np.zeros(4, dtype=np.float32))
+    assert env.desired_speed == 3.0 and env.weights.speed != 0.0 and obs[9] == pytest.approx(0.3)
+    obs, _ = env.reset(seed=1)
+    assert env.desired_speed == 8.0 and env.weights.speed == 0.0 and obs[9] == pytest.approx(0.8)
+    env.close()
+
+
+def test_set_task_gate_shift_keeps_vertical_range_rule() -> None:
+    """``gate_shift_z`` left unset follows ``gate_shift`` through set_task; set explicitly, it stays."""
+    follows = RaceEnv(track="S", obs_mode="state", gate_shift=0.3)
+    follows.set_task(gate_shift=1.0)
+    assert follows.generator.gate_shift == 1.0 and follows.generator.gate_shift_z == 1.0
+    fixed = RaceEnv(track="S", obs_mode="state", gate_shift=0.3, gate_shift_z=0.2)
+    fixed.set_task(gate_shift=1.0)
+    assert fixed.generator.gate_shift == 1.0 and fixed.generator.gate_shift_z == 0.2
+    follows.close()
+    fixed.close()

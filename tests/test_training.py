@@ -24,6 +24,7 @@ from racebench.training.train import (
     MultiSceneCallback,
     ThreadsCallback,
     TrainConfig,
+    _restore_reward_stats,
     make_envs,
     make_model,
     resume_curriculum,
@@ -101,16 +102,37 @@ def test_curriculum_promotes_on_a_scripted_success_signal() -> None:
     assert callback.level == 1
     callback.record(True)  # the first failure leaves: 8/10
     assert callback.level == 2
-    assert fake.calls == [("set_task", config.level_kwargs(2))]
+    assert fake.calls == [("set_task", config.level_kwargs(2)), ("set_layout", {})]
     assert fake.calls[0][1]["density"] == CURRICULUM[2]["density"]
     for _ in range(9):  # a fresh window is needed after a promotion
         callback.record(True)
     assert callback.level == 2
     callback.record(True)
-    assert callback.level == 3 and fake.calls[-1][1]["reward_weights"] == {"speed": 0.0}
+    assert callback.level == 3 and fake.calls[-2][1]["reward_weights"] == {"speed": 0.0}
     for _ in range(30):  # no level past the last
         callback.record(True)
     assert callback.level == 3 and [p["level"] for p in callback.promotions] == [2, 3]
+
+
+def test_episodes_begun_before_a_promotion_do_not_count() -> None:
+    """Episodes in flight at a promotion finish under the old level's task and must not promote the next."""
+    callback = CurriculumCallback(TrainConfig(name="t", window=2, promote_at=1.0))
+    callback.init_callback(FakeModel(FakeVecEnv()))
+    callback.on_training_start({}, {})
+    lap = {"is_success": True, "start_gate": 0}
+
+    def step(*finished: int) -> None:
+        callback.update_locals({"dones": [i in finished for i in range(4)], "infos": [lap] * 4})
+        callback.on_step()
+
+    step(0, 1)  # two laps at level 1: promoted while handling env 1
+    assert callback.level == 2
+    step(0, 2, 3)  # env 0 was reset before the promotion, envs 2 and 3 began at level 1: none count
+    assert callback.level == 2 and len(callback.successes) == 0
+    step(1)  # env 1 was reset in the promotion's step, before it: its episode began at level 1
+    assert len(callback.successes) == 0
+    step(0, 2)  # both began after the promotion
+    assert callback.level == 3
 
 
 def test_no_promotion_without_curriculum() -> None:
@@ -273,23 +295,28 @@ def test_checkpoint_save_load_same_actions(tmp_path: Path) -> None:
 
 
 def test_resume_after_a_killed_run(tmp_path: Path) -> None:
-    """A run killed after its last checkpoint resumes at that checkpoint's level, with its progress rows."""
+    """A run killed after a checkpoint resumes at that checkpoint's level and reward scale, with its progress rows."""
     config = small(TrainConfig.from_yaml(BASELINES[0].parent / "state-ppo.yaml"))
-    first = train(config, "S", steps=64, seed=0, out=tmp_path, eval_episodes=0)
-    at = first["timesteps"]
-    # The killed run went on past the checkpoint: it logged more rows and a promotion the checkpoint never saw.
-    rows = pd.read_csv(tmp_path / "progress.csv")
-    later = rows.iloc[[-1]].assign(timesteps=at + 1000, level=2, episodes=999, wall_s=99.0)
-    pd.concat([rows, later]).to_csv(tmp_path / "progress.csv", index=False)
+    rollout = config.n_envs * config.n_steps
+    first = train(config, "S", steps=3 * rollout, out=tmp_path, eval_episodes=0, checkpoint_every=1)
+    checkpoints = sorted((tmp_path / "checkpoints").glob("*_steps.zip"), key=lambda p: int(p.stem.split("_")[-2]))
+    at = int(checkpoints[1].stem.split("_")[-2])  # the second of three: the run went on after it
+    assert at == 2 * rollout < first["timesteps"]
+    # The lost stretch also saw a promotion the checkpoint never did.
     promoted = {"level": 2, "promotions": [{"level": 2, "timestep": at + 1}]}
     (tmp_path / "curriculum.json").write_text(json.dumps(promoted))
-    assert (tmp_path / "vecnormalize.pkl").exists()
+    env = make_envs(config, "S", 0)
+    _restore_reward_stats(env, checkpoints[1])
+    saved = VecNormalize.load(str(checkpoints[1].with_name(f"state-ppo_vecnormalize_{at}_steps.pkl")), env.venv)
+    assert env.ret_rms.count == saved.ret_rms.count > 1 and env.ret_rms.var == pytest.approx(saved.ret_rms.var)
+    env.close()
 
-    resumed = train(config, "S", steps=64, seed=0, out=tmp_path, resume=first["checkpoint"], eval_episodes=0)
-    assert resumed["level"] == 1 and resumed["promotions"] == []
+    resumed = train(config, "S", steps=64, out=tmp_path, resume=checkpoints[1], eval_episodes=0, checkpoint_every=1)
+    assert resumed["resumed_at"] == at and resumed["level"] == 1 and resumed["promotions"] == []
     progress = pd.read_csv(tmp_path / "progress.csv")
-    assert progress["timesteps"].is_monotonic_increasing and progress["timesteps"].iloc[-1] == resumed["timesteps"]
-    assert (progress["level"] == 1).all() and progress["episodes"].is_monotonic_increasing
+    assert list(progress["timesteps"]) == [at // 2, at, resumed["timesteps"]]
+    assert (progress["level"] == 1).all() and progress["wall_s"].is_monotonic_increasing
+    assert progress["episodes"].is_monotonic_increasing
 
 
 def test_resume_curriculum_from_progress_alone(tmp_path: Path) -> None:

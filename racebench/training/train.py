@@ -24,6 +24,7 @@ from __future__ import annotations
 import csv
 import json
 import time
+import warnings
 from collections import deque
 from dataclasses import dataclass, field, fields
 from importlib import resources
@@ -135,6 +136,7 @@ class TrainConfig:
             (self.obs_mode in ("vision", "state"), "obs_mode must be 'vision' or 'state'"),
             (self.start_mode in ("track", "gates"), "start_mode must be 'track' or 'gates'"),
             (self.start_level in self.levels, f"start_level must be one of {sorted(self.levels)}"),
+            (sorted(self.levels) == list(range(1, len(self.levels) + 1)), "levels must be numbered 1, 2, ..., n"),
             (0 < self.promote_at <= 1, "promote_at must be in (0, 1]"),
             (self.window >= 1, "window must be >= 1"),
             (self.n_envs >= 1, "n_envs must be >= 1"),
@@ -185,6 +187,8 @@ class CurriculumCallback(BaseCallback):
     """Promote to the next level when the rolling success rate over ``window`` episodes reaches ``promote_at``.
 
     Only episodes from the track start count (:func:`is_lap`): success then means a whole run, as evaluated.
+    After a promotion, episodes that began at the old level do not count for the new one (``RaceEnv.set_task``
+    applies at each env's next reset).
     """
 
     def __init__(
@@ -201,6 +205,7 @@ class CurriculumCallback(BaseCallback):
         self.successes: deque[bool] = deque(maxlen=config.window)
         self.promotions: list[dict[str, int]] = list(promotions or [])
         self.state_file = state_file
+        self.episode_level: np.ndarray | None = None  # the level each env's running episode began at
 
     def save_state(self) -> None:
         """Write level and promotions to ``state_file`` (at every promotion, so a killed run can resume)."""
@@ -224,6 +229,8 @@ class CurriculumCallback(BaseCallback):
         """Move every env to the next level and log it."""
         self.level += 1
         self.training_env.env_method("set_task", **self.config.level_kwargs(self.level))
+        # Shared layouts were drawn at the old level: fresh scenes until the next rollout regroups the envs.
+        self.training_env.env_method("set_layout", None)
         self.successes.clear()
         self.promotions.append({"level": self.level, "timestep": int(self.num_timesteps)})
         self.save_state()
@@ -231,12 +238,18 @@ class CurriculumCallback(BaseCallback):
             print(f"curriculum: level {self.level} at step {self.num_timesteps}")
 
     def _on_training_start(self) -> None:
+        self.episode_level = np.full(self.training_env.num_envs, self.level)
         self.save_state()
 
     def _on_step(self) -> bool:
-        for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
-            if done and is_lap(info):
+        # Envs that finished this step were reset inside the VecEnv step, before any promotion below.
+        level_at_reset = self.level
+        for i, (done, info) in enumerate(zip(self.locals["dones"], self.locals["infos"], strict=True)):
+            if not done:
+                continue
+            if is_lap(info) and self.episode_level[i] == self.level:
                 self.record(info.get("is_success", False))
+            self.episode_level[i] = level_at_reset
         self.logger.record("curriculum/level", self.level)
         return True
 
@@ -370,7 +383,7 @@ def resume_curriculum(out: Path, timesteps: int, start_level: int) -> tuple[int,
     if state_file.exists():
         promotions = json.loads(state_file.read_text())["promotions"]
     elif rows is not None:
-        changed = rows[rows["level"].diff().fillna(0) > 0]
+        changed = rows[rows["level"].diff().fillna(rows["level"].iloc[0] - start_level) > 0]
         promotions = [{"level": int(r.level), "timestep": int(r.timesteps)} for r in changed.itertuples()]
     else:
         promotions = []
@@ -495,9 +508,16 @@ def train(
         _restore_reward_stats(env, Path(resume))
         model = _load_model(resume, env)
         level, promotions = resume_curriculum(out, model.num_timesteps, config.start_level)
+        if model.num_timesteps > 0 and not (state_file.exists() or (out / "progress.csv").exists()):
+            warnings.warn(
+                f"resuming {resume} into {out}, which holds no curriculum.json or progress.csv: "
+                f"the curriculum restarts at level {level}; pass the run's own folder as --out to continue it",
+                stacklevel=2,
+            )
+        started_at = model.num_timesteps
     else:
         model = make_model(config, env, seed, str(out / "tb"))
-        level, promotions = config.start_level, []
+        level, promotions, started_at = config.start_level, [], 0
     if level != config.start_level:
         env.env_method("set_task", **config.level_kwargs(level))
     curriculum = CurriculumCallback(config, level=level, verbose=1, state_file=state_file, promotions=promotions)
@@ -507,7 +527,8 @@ def train(
             MultiSceneCallback(config, curriculum),
             ProgressCSVCallback(out / "progress.csv", curriculum),
             CheckpointCallback(
-                max(checkpoint_every // config.n_envs, 1),
+                # at rollout ends, so a resumed run loses no collected samples
+                max(round(checkpoint_every / (config.n_envs * config.n_steps)), 1) * config.n_steps,
                 str(out / "checkpoints"),
                 config.name,
                 save_vecnormalize=True,
@@ -529,8 +550,9 @@ def train(
         "track": track,
         "seed": seed,
         "timesteps": int(model.num_timesteps),
-        "wall_s": round(wall, 1),
-        "samples_per_s": round(steps / wall, 1),
+        "resumed_at": started_at if resume is not None else None,
+        "wall_s": round(wall, 1),  # of this call (progress.csv's wall_s adds up the resumed parts)
+        "samples_per_s": round((model.num_timesteps - started_at) / wall, 1),
         "level": curriculum.level,
         "promotions": curriculum.promotions,
         "checkpoint": str(final),
