@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
 import os
 import re
 import subprocess
@@ -187,6 +188,13 @@ def _worker_init(agent_spec: str, agent_name: str | None, env_kwargs: dict[str, 
     _WORKER.update(agent=agent, name=agent_name or agent.name, envs={}, env_kwargs=env_kwargs)
 
 
+def _pool_worker_init(agent_spec: str, agent_name: str | None, env_kwargs: dict[str, Any]) -> None:
+    import torch  # here: only learned agents need it, and they have imported it already
+
+    torch.set_num_threads(1)  # one episode at a time per worker, one worker per core
+    _worker_init(agent_spec, agent_name, env_kwargs)
+
+
 def _worker_run(env_id: str, seed: int, save_trajectory: bool) -> tuple[str, int, dict[str, Any], dict | None]:
     agent = _WORKER["agent"]
     envs = _WORKER["envs"]
@@ -293,8 +301,13 @@ class Evaluator:
                 self._store(*_worker_run(env_id, seed, self.save_trajectories))
                 bar.update()
         else:
+            # "spawn": a forked child of a process that has run torch can deadlock in torch's thread pool
+            # (seen: --workers 2 with a GRU checkpoint hung at start).
             with ProcessPoolExecutor(
-                self.workers, initializer=_worker_init, initargs=(self.agent_spec, self.agent_name, self.env_kwargs)
+                self.workers,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_pool_worker_init,
+                initargs=(self.agent_spec, self.agent_name, self.env_kwargs),
             ) as pool:
                 futures = [pool.submit(_worker_run, env_id, seed, self.save_trajectories) for env_id, seed in todo]
                 for future in as_completed(futures):

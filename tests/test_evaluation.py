@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -204,6 +205,25 @@ def test_sb3_checkpoint_round_trip(tiny_ppo) -> None:
     agent.reset()
     for o in obs:
         np.testing.assert_array_equal(agent.act(o), model.predict(o, deterministic=True)[0])
+
+
+def test_worker_processes_give_the_same_episodes(tiny_ppo, tmp_path: Path) -> None:
+    """``workers=2`` (spawned processes, after torch ran in this one) records what one process records."""
+    _, path = tiny_ppo
+    envs = ["RaceObs-S-Level1-v0", "RaceObs-S-v0"]
+    Evaluator(str(path), envs, episodes=2, out_dir=tmp_path / "one").run(progress=False)
+    pool_run = threading.Thread(  # a deadlocked pool fails the test instead of hanging the suite
+        target=Evaluator(str(path), envs, episodes=2, out_dir=tmp_path / "two", workers=2).run,
+        kwargs={"progress": False},
+        daemon=True,
+    )
+    pool_run.start()
+    pool_run.join(timeout=180)
+    assert not pool_run.is_alive(), "the worker pool hung"
+    columns = ["env_id", "seed", "success", "crash_reason", "gates_passed", "return", "steps"]
+    one = pd.read_csv(tmp_path / "one" / "episodes.csv")[columns]
+    two = pd.read_csv(tmp_path / "two" / "episodes.csv")[columns]
+    pd.testing.assert_frame_equal(one, two)
 
 
 def test_onnx_export_round_trip(tiny_ppo, tmp_path: Path) -> None:

@@ -8,11 +8,13 @@ The whole algorithm is here:
    depth, episodes starting before any gate) seeded below the evaluation seeds, rewards normalised by
    ``VecNormalize``;
 2. :class:`CurriculumCallback`: a rolling success rate over the last ``window`` finished episodes; above
-   ``promote_at`` the envs move to the next level (``RaceEnv.set_task``); each promotion is logged with
-   its timestep. "One-step" training starts at the last level;
+   ``promote_at`` the envs move to the next level (``RaceEnv.set_task``, from each env's next episode on;
+   episodes begun before it do not count for the new level); each promotion is logged with its timestep
+   and saved at once. "One-step" training starts at the last level;
 3. :class:`MultiSceneCallback`: at every rollout start the envs are split into K groups (K per level);
    each group gets one new obstacle layout (and gate perturbation) shared by its envs (``set_layout``),
-   while start poses stay random per episode;
+   which each env flies from its next episode on (episodes run longer than a rollout, so a group's envs
+   overlap two layouts for a while); start poses stay random per episode;
 4. PPO (``RecurrentPPO`` with :class:`~racebench.training.policies.RecurrentGRUPolicy`, or ``PPO``; torch
    threads switched around the update by :class:`ThreadsCallback`), with
    TensorBoard logs, a CSV row per update (:class:`ProgressCSVCallback`), periodic checkpoints, resume,
