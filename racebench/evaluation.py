@@ -19,6 +19,7 @@ most the episodes in flight.
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import json
 import multiprocessing
@@ -184,14 +185,23 @@ _WORKER: dict[str, Any] = {}
 
 
 def _worker_init(agent_spec: str, agent_name: str | None, env_kwargs: dict[str, Any]) -> None:
+    _close_worker_envs()
     agent = load_agent(agent_spec)
     _WORKER.update(agent=agent, name=agent_name or agent.name, envs={}, env_kwargs=env_kwargs)
+
+
+def _close_worker_envs() -> None:
+    """Close this process's evaluation envs (PyBullet clients left to interpreter shutdown print errors)."""
+    for env in _WORKER.get("envs", {}).values():
+        env.close()
+    _WORKER["envs"] = {}
 
 
 def _pool_worker_init(agent_spec: str, agent_name: str | None, env_kwargs: dict[str, Any]) -> None:
     import torch  # here: only learned agents need it, and they have imported it already
 
     torch.set_num_threads(1)  # one episode at a time per worker, one worker per core
+    atexit.register(_close_worker_envs)
     _worker_init(agent_spec, agent_name, env_kwargs)
 
 
@@ -300,6 +310,7 @@ class Evaluator:
             for env_id, seed in todo:
                 self._store(*_worker_run(env_id, seed, self.save_trajectories))
                 bar.update()
+            _close_worker_envs()
         else:
             # "spawn": a forked child of a process that has run torch can deadlock in torch's thread pool
             # (seen: --workers 2 with a GRU checkpoint hung at start).
