@@ -15,6 +15,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 from racebench.agents import SB3Agent
+from racebench.evaluation import EVAL_SEED_BASE
 from racebench.registration import CURRICULUM
 from racebench.sb3 import RaceSB3VecEnv
 from racebench.training.policies import LSTMShapedGRU, RecurrentGRUPolicy
@@ -28,6 +29,7 @@ from racebench.training.train import (
     make_envs,
     make_model,
     resume_curriculum,
+    resume_seed,
     train,
 )
 
@@ -313,10 +315,17 @@ def test_resume_after_a_killed_run(tmp_path: Path) -> None:
 
     resumed = train(config, "S", steps=64, out=tmp_path, resume=checkpoints[1], eval_episodes=0, checkpoint_every=1)
     assert resumed["resumed_at"] == at and resumed["level"] == 1 and resumed["promotions"] == []
+    assert resumed["env_seed"] == resume_seed(0, at, config.n_envs) != first["env_seed"] == 0
     progress = pd.read_csv(tmp_path / "progress.csv")
     assert list(progress["timesteps"]) == [at // 2, at, resumed["timesteps"]]
     assert (progress["level"] == 1).all() and progress["wall_s"].is_monotonic_increasing
     assert progress["episodes"].is_monotonic_increasing
+
+
+def test_resume_seed_is_new_and_below_the_evaluation_seeds() -> None:
+    seeds = {resume_seed(0, 2048 * k, 64) for k in range(1, 200)}
+    assert len(seeds) == 199 and all(0 <= s <= EVAL_SEED_BASE - 64 for s in seeds)
+    assert resume_seed(7, 0, 64) == 7 and resume_seed(1, 2048, 64) != resume_seed(0, 2048, 64)
 
 
 def test_resume_curriculum_from_progress_alone(tmp_path: Path) -> None:

@@ -505,23 +505,26 @@ def train(
     state_file = out / "curriculum.json"
 
     torch.set_num_threads(config.torch_threads)  # measured: 7x faster updates than torch's default here
-    env = make_envs(config, track, seed)
-    if resume is not None:
-        _restore_reward_stats(env, Path(resume))
-        model = _load_model(resume, env)
-        level, promotions = resume_curriculum(out, model.num_timesteps, config.start_level)
-        if model.num_timesteps > 0 and not (state_file.exists() or (out / "progress.csv").exists()):
+    if resume is None:
+        env = make_envs(config, track, seed)
+        model = make_model(config, env, seed, str(out / "tb"))
+        level, promotions, started_at = config.start_level, [], 0
+    else:
+        model = _load_model(resume)
+        started_at = model.num_timesteps
+        level, promotions = resume_curriculum(out, started_at, config.start_level)
+        if started_at > 0 and not (state_file.exists() or (out / "progress.csv").exists()):
             warnings.warn(
                 f"resuming {resume} into {out}, which holds no curriculum.json or progress.csv: "
                 f"the curriculum restarts at level {level}; pass the run's own folder as --out to continue it",
                 stacklevel=2,
             )
-        started_at = model.num_timesteps
-    else:
-        model = make_model(config, env, seed, str(out / "tb"))
-        level, promotions, started_at = config.start_level, [], 0
-    if level != config.start_level:
-        env.env_method("set_task", **config.level_kwargs(level))
+        # New env seeds, so the resumed run does not replay the scenes its first part began with.
+        env = make_envs(config, track, resume_seed(seed, started_at, config.n_envs))
+        _restore_reward_stats(env, Path(resume))
+        if level != config.start_level:
+            env.env_method("set_task", **config.level_kwargs(level))  # applies at the reset in set_env
+        model.set_env(env)
     curriculum = CurriculumCallback(config, level=level, verbose=1, state_file=state_file, promotions=promotions)
     callbacks = CallbackList(
         [
@@ -553,6 +556,7 @@ def train(
         "seed": seed,
         "timesteps": int(model.num_timesteps),
         "resumed_at": started_at if resume is not None else None,
+        "env_seed": resume_seed(seed, started_at, config.n_envs),
         "wall_s": round(wall, 1),  # of this call (progress.csv's wall_s adds up the resumed parts)
         "samples_per_s": round((model.num_timesteps - started_at) / wall, 1),
         "level": curriculum.level,
@@ -589,12 +593,18 @@ def _restore_reward_stats(env: VecEnv, checkpoint: Path) -> None:
         env.ret_rms = saved.ret_rms  # rewards only: the policy never sees normalised observations
 
 
-def _load_model(path: str | Path, env: VecEnv) -> Any:
+def _load_model(path: str | Path) -> Any:
     from racebench.agents import SB3Agent
 
-    model = SB3Agent._load(Path(path), "cpu")
-    model.set_env(env)
-    return model
+    return SB3Agent._load(Path(path), "cpu")
+
+
+def resume_seed(seed: int, timesteps: int, n_envs: int) -> int:
+    """Env seed of a run resumed at ``timesteps``: derived from both, below the evaluation seeds."""
+    if timesteps == 0:
+        return seed
+    drawn = int(np.random.SeedSequence([seed, timesteps]).generate_state(1)[0])
+    return drawn % (EVAL_SEED_BASE - n_envs + 1)
 
 
 def _plain(value: Any) -> Any:
