@@ -161,7 +161,8 @@ def run_episode(agent: Agent, env: gym.Env, seed: int, trajectory: list | None =
     }
 
 
-def _atomic_write(path: Path, text: str) -> None:
+def atomic_write(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` via a synced temporary file and a rename: a kill leaves the old file or the new."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
@@ -298,7 +299,7 @@ class Evaluator:
             scene = json.dumps(flown["scene"])
             np.savez_compressed(tmp, positions=flown["positions"], scene=scene, row=json.dumps(row))
             os.replace(tmp, traj_dir / name)
-        _atomic_write(self.records_dir / _record_name(self.agent_name, env_id, seed), json.dumps(row))
+        atomic_write(self.records_dir / _record_name(self.agent_name, env_id, seed), json.dumps(row))
 
     def run(self, progress: bool = True) -> pd.DataFrame:
         """Run every pending episode, then write the CSVs; returns the summary of this output directory."""
@@ -370,8 +371,8 @@ def write_tables(out_dir: str | Path) -> pd.DataFrame:
     out_dir = Path(out_dir)
     episodes = load_records(out_dir)
     summary = summarize(episodes)
-    _atomic_write(out_dir / "episodes.csv", episodes.to_csv(index=False))
-    _atomic_write(out_dir / "summary.csv", summary.to_csv(index=False, float_format="%.4f"))
+    atomic_write(out_dir / "episodes.csv", episodes.to_csv(index=False))
+    atomic_write(out_dir / "summary.csv", summary.to_csv(index=False, float_format="%.4f"))
     return summary
 
 

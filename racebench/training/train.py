@@ -41,7 +41,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList, Check
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, VecNormalize
 
-from racebench.evaluation import EVAL_SEED_BASE
+from racebench.evaluation import EVAL_SEED_BASE, atomic_write
 from racebench.registration import CURRICULUM
 from racebench.sb3 import make_sb3_vec_env
 from racebench.track import BUILTIN_TRACKS
@@ -212,7 +212,7 @@ class CurriculumCallback(BaseCallback):
     def save_state(self) -> None:
         """Write level and promotions to ``state_file`` (at every promotion, so a killed run can resume)."""
         if self.state_file is not None:
-            self.state_file.write_text(json.dumps({"level": self.level, "promotions": self.promotions}))
+            atomic_write(self.state_file, json.dumps({"level": self.level, "promotions": self.promotions}))
 
     @property
     def last_level(self) -> int:
@@ -311,7 +311,7 @@ class ProgressCSVCallback(BaseCallback):
         # On resume, rows logged after the checkpoint belong to the lost stretch of the killed run: drop
         # them, and continue the episode count and wall clock where the kept rows end.
         kept = rows[rows["timesteps"] <= self.num_timesteps]
-        kept.to_csv(self.path, index=False)
+        atomic_write(self.path, kept.to_csv(index=False))
         if len(kept):
             self.episodes = int(kept["episodes"].iloc[-1])
             self.started -= float(kept["wall_s"].iloc[-1])
