@@ -305,6 +305,8 @@ def test_resume_after_a_killed_run(tmp_path: Path) -> None:
     at = int(checkpoints[1].stem.split("_")[-2])  # the second of three: the run went on after it
     assert at == 2 * rollout < first["timesteps"]
     # The lost stretch also saw a promotion the checkpoint never did.
+    with (tmp_path / "progress.csv").open("a") as f:
+        f.write("6")  # and the kill cut its last row short
     promoted = {"level": 2, "promotions": [{"level": 2, "timestep": at + 1}]}
     (tmp_path / "curriculum.json").write_text(json.dumps(promoted))
     env = make_envs(config, "S", 0)

@@ -308,6 +308,7 @@ class ProgressCSVCallback(BaseCallback):
         rows = _read_progress(self.path)
         if rows is None or self.num_timesteps == 0:  # a fresh run starts a fresh file
             rows = pd.DataFrame(columns=list(self.COLUMNS))
+        rows = rows.dropna(subset=["wall_s"])  # a row cut short by the kill (wall_s is written last)
         # On resume, rows logged after the checkpoint belong to the lost stretch of the killed run: drop
         # them, and continue the episode count and wall clock where the kept rows end.
         kept = rows[rows["timesteps"] <= self.num_timesteps]
