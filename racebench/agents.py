@@ -13,13 +13,24 @@ Spec strings accepted by :func:`load_agent`:
 * ``path/to/policy.onnx``: an ONNX policy run with onnxruntime (no code from the file runs), see
   :class:`OnnxAgent` for the expected inputs and outputs and :func:`export_onnx` to make one;
 * ``package.module:ClassName`` or ``path/to/file.py:ClassName``: a Python class built with no arguments.
+
+**Untrusted code is refused by default.** Loading an SB3 ``.zip`` unpickles Python objects (which can run
+arbitrary code) and a ``module:Class`` spec imports and runs a module, so both need ``trust_code=True``
+(``--trust-code`` on the command line). The checkpoints shipped in this repository are trusted by the
+sha256 of their bytes (:data:`TRUSTED_CHECKPOINTS`). ONNX files run no code and need no flag.
+
+Only built-in agents can be privileged, and the loader, not the agent, decides which
+(:data:`BUILTIN_PRIVILEGED`): a user agent is never handed the environment.
 """
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import importlib.util
+import io
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -29,10 +40,89 @@ from racebench.control import GateFollower
 from racebench.quadrotor import QuadrotorParams
 
 BUILTIN_AGENTS: tuple[str, ...] = ("random", "hover", "planner", "follow")
+#: Which built-in agents read the true scene and state. Only these are ever privileged.
+BUILTIN_PRIVILEGED: dict[str, bool] = {"random": False, "hover": False, "planner": True, "follow": True}
+#: Code version of each built-in agent, part of its policy hash: bump it when the agent's behaviour changes.
+BUILTIN_VERSIONS: dict[str, int] = {"random": 1, "hover": 1, "planner": 1, "follow": 1}
+#: sha256 of the first-party checkpoints shipped in ``baselines/checkpoints`` -> their path under it. They load
+#: without ``trust_code`` (``tests/test_checkpoints.py`` keeps this list and the committed files in step).
+TRUSTED_CHECKPOINTS: dict[str, str] = {
+    "a9648364a3a9c09e80189685eaecd34bfa47c1812bb7de8ab5a5cf00bd2bcd92": "vision-ppo-S/vision-ppo-S.zip",
+    "3197e89e15de4f01be8cfb9e70d3595d9c50f3a15a5f99ea13b505429dfcc6b9": "state-ppo-S/state-ppo-S.zip",
+}
 
 
 class AgentLoadError(ValueError):
     """An agent spec could not be turned into an agent; the message names the spec and the reason."""
+
+
+class UntrustedCodeError(AgentLoadError):
+    """Loading the agent would run code from an untrusted file and ``trust_code`` was not given."""
+
+
+@dataclass(frozen=True)
+class PolicyIdentity:
+    """What exactly an agent spec stands for: the key of every evaluation record it produces.
+
+    ``sha256`` is of the policy file's bytes (the checkpoint, the ONNX graph, the Python file of a
+    ``module:Class``), or of ``"racebench-builtin:<name>:v<version>"`` for a built-in agent.
+    """
+
+    kind: str  # "builtin", "sb3", "onnx" or "python"
+    sha256: str
+    source: str  # the spec (built-ins: the name)
+    privileged: bool
+
+
+def builtin_identity(name: str) -> PolicyIdentity:
+    """The identity of a built-in agent: its name and code version."""
+    digest = hashlib.sha256(f"racebench-builtin:{name}:v{BUILTIN_VERSIONS[name]}".encode()).hexdigest()
+    return PolicyIdentity("builtin", digest, name, BUILTIN_PRIVILEGED[name])
+
+
+def _sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _python_source(spec: str) -> Path:
+    """The file a ``module:Class`` or ``file.py:Class`` spec would execute, found without importing it."""
+    target = spec.rpartition(":")[0]
+    if target.endswith(".py"):
+        path = Path(target)
+    else:
+        try:
+            found = importlib.util.find_spec(target)
+        except (ImportError, ValueError) as exc:
+            raise AgentLoadError(f"agent spec {spec!r}: cannot find module {target!r}: {exc}") from exc
+        if found is None or not found.origin or not Path(found.origin).is_file():
+            raise AgentLoadError(f"agent spec {spec!r}: cannot find module {target!r}")
+        path = Path(found.origin)
+    if not path.is_file():
+        raise AgentLoadError(f"agent spec {spec!r}: file {str(path)!r} does not exist")
+    return path
+
+
+def policy_identity(spec: str) -> PolicyIdentity:
+    """The :class:`PolicyIdentity` of an agent spec, computed from the file's bytes without running any of it."""
+    if spec in BUILTIN_AGENTS:
+        return builtin_identity(spec)
+    if spec.endswith(".zip") or spec.endswith(".onnx"):
+        path = Path(spec)
+        if not path.is_file():
+            raise AgentLoadError(f"policy file {spec!r} does not exist")
+        return PolicyIdentity("sb3" if spec.endswith(".zip") else "onnx", _sha256_bytes(path.read_bytes()), spec, False)
+    if ":" in spec:
+        return PolicyIdentity("python", _sha256_bytes(_python_source(spec).read_bytes()), spec, False)
+    raise AgentLoadError(
+        f"unknown agent spec {spec!r}: expected one of {BUILTIN_AGENTS}, a .zip (SB3) or .onnx file, or module:Class"
+    )
+
+
+def _refuse_untrusted(spec: str, why: str) -> UntrustedCodeError:
+    return UntrustedCodeError(
+        f"agent {spec!r}: {why}, which can run arbitrary code; pass --trust-code (trust_code=True) only if you "
+        "trust where it came from (an ONNX export runs no code and needs no flag)"
+    )
 
 
 @runtime_checkable
@@ -128,13 +218,17 @@ class SB3Agent:
 
     privileged = False
 
-    def __init__(self, path: str | Path, device: str = "cpu") -> None:
+    def __init__(self, path: str | Path, device: str = "cpu", trust_code: bool = False) -> None:
         path = Path(path)
         if not path.is_file():
             raise AgentLoadError(f"SB3 checkpoint {str(path)!r} does not exist")
-        if not zipfile.is_zipfile(path):
+        data = path.read_bytes()  # hashed and loaded from the same bytes: no swap between check and load
+        self.sha256 = _sha256_bytes(data)
+        if not zipfile.is_zipfile(io.BytesIO(data)):
             raise AgentLoadError(f"SB3 checkpoint {str(path)!r} is not a zip archive (corrupt or not a checkpoint)")
-        self.model = self._load(path, device)
+        if not (trust_code or self.sha256 in TRUSTED_CHECKPOINTS):
+            raise _refuse_untrusted(str(path), "an SB3 checkpoint is unpickled when loaded")
+        self.model = self._load(path, device, data)
         self.name = path.stem
         self.obs_mode = _obs_mode_of(self.model.observation_space)
         self.recurrent = "Recurrent" in type(self.model.policy).__name__ or hasattr(self.model.policy, "recurrent")
@@ -142,12 +236,14 @@ class SB3Agent:
         self.episode_start = np.ones((1,), dtype=bool)
 
     @staticmethod
-    def _load(path: Path, device: str) -> Any:
+    def _load(path: Path, device: str, raw: bytes | None = None) -> Any:
+        """Load with the algorithm class the checkpoint names (the caller has decided to trust it)."""
         from stable_baselines3 import A2C, DDPG, PPO, SAC, TD3
         from stable_baselines3.common.save_util import load_from_zip_file
 
+        raw = path.read_bytes() if raw is None else raw
         try:
-            data, _, _ = load_from_zip_file(path, device=device, print_system_info=False)
+            data, _, _ = load_from_zip_file(io.BytesIO(raw), device=device, print_system_info=False)
         except Exception as exc:  # noqa: BLE001 - SB3 raises many kinds on a damaged archive
             raise AgentLoadError(f"SB3 checkpoint {str(path)!r} could not be read: {exc}") from exc
         policy_name = getattr(data.get("policy_class"), "__name__", "")
@@ -158,15 +254,11 @@ class SB3Agent:
             except ImportError as exc:
                 raise AgentLoadError(f"{str(path)!r} holds a recurrent policy: pip install sb3-contrib") from exc
             candidates.append(RecurrentPPO)
-        custom = data.get("racebench_algorithm")
-        if custom:
-            module, _, cls = str(custom).partition(":")
-            candidates.insert(0, getattr(importlib.import_module(module), cls))
         candidates += [PPO, SAC, TD3, A2C, DDPG]
         errors = []
         for algorithm in candidates:
             try:
-                return algorithm.load(path, device=device)
+                return algorithm.load(io.BytesIO(raw), device=device)
             except Exception as exc:  # noqa: BLE001 - try the next algorithm class
                 errors.append(f"{algorithm.__name__}: {exc}")
         raise AgentLoadError(f"SB3 checkpoint {str(path)!r} could not be loaded by any algorithm ({'; '.join(errors)})")
@@ -269,8 +361,11 @@ def export_onnx(model: Any, path: str | Path) -> Path:
     return path
 
 
-def _python_agent(spec: str) -> Any:
+def _python_agent(spec: str, trust_code: bool = False) -> Any:
     target, _, cls_name = spec.rpartition(":")
+    _python_source(spec)  # a missing file or module is named before the trust question
+    if not trust_code:
+        raise _refuse_untrusted(spec, "a Python agent is imported and run")
     try:
         if target.endswith(".py"):
             file = Path(target)
@@ -292,16 +387,26 @@ def _python_agent(spec: str) -> Any:
     for attr in ("reset", "act"):
         if not callable(getattr(agent, attr, None)):
             raise AgentLoadError(f"agent spec {spec!r}: {cls_name} has no method {attr}()")
+    if getattr(agent, "privileged", False):
+        raise AgentLoadError(
+            f"agent spec {spec!r}: only built-in agents ({[k for k, v in BUILTIN_PRIVILEGED.items() if v]}) may be "
+            "privileged; a user agent acts on its observation alone"
+        )
     agent.name = getattr(agent, "name", cls_name)
     agent.obs_mode = getattr(agent, "obs_mode", "vision")
-    agent.privileged = getattr(agent, "privileged", False)
+    agent.privileged = False
     if agent.obs_mode not in ("vision", "state"):
         raise AgentLoadError(f"agent spec {spec!r}: obs_mode must be 'vision' or 'state', got {agent.obs_mode!r}")
     return agent
 
 
-def load_agent(spec: str) -> Agent:
-    """Build an agent from a spec string (see the module docstring)."""
+def load_agent(spec: str, trust_code: bool = False) -> Agent:
+    """Build an agent from a spec string (see the module docstring).
+
+    ``trust_code`` allows specs that run code from a file (SB3 ``.zip`` outside :data:`TRUSTED_CHECKPOINTS`,
+    ``module:Class``, ``file.py:Class``); without it they raise :class:`UntrustedCodeError` before any of
+    that code runs.
+    """
     if spec == "random":
         return RandomAgent()
     if spec == "hover":
@@ -313,11 +418,11 @@ def load_agent(spec: str) -> Agent:
     if spec == "follow":
         return FollowAgent()
     if spec.endswith(".zip"):
-        return SB3Agent(spec)
+        return SB3Agent(spec, trust_code=trust_code)
     if spec.endswith(".onnx"):
         return OnnxAgent(spec)
     if ":" in spec:
-        return _python_agent(spec)
+        return _python_agent(spec, trust_code)
     raise AgentLoadError(
         f"unknown agent spec {spec!r}: expected one of {BUILTIN_AGENTS}, a .zip (SB3) or .onnx file, or module:Class"
     )

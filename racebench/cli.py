@@ -68,10 +68,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--envs", nargs="+", default=["main"], help="env ids and/or suites: main, density, gates, paper (default: main)"
     )
     p_eval.add_argument("--episodes", type=int, default=10, help="episodes per env id (default 10, as in the paper)")
-    p_eval.add_argument("--out", default=None, help="output directory (default: results/<agent name>)")
+    p_eval.add_argument(
+        "--out",
+        default=None,
+        help="output directory; holds one policy's records (default: runs/eval/<name>-<policy sha256 prefix>)",
+    )
     p_eval.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    p_eval.add_argument("--name", default=None, help="agent name in the CSVs (default: derived from --agent)")
+    p_eval.add_argument("--name", default=None, help="label of the agent in the CSVs (default: derived from --agent)")
     p_eval.add_argument("--save-trajectories", action="store_true", help="store flown paths for `racebench plot`")
+    p_eval.add_argument(
+        "--trust-code",
+        action="store_true",
+        help="allow agents whose loading runs code from a file: SB3 .zip (unpickled) and module:Class / file.py:Class",
+    )
+    p_eval.add_argument("--force", action="store_true", help="discard every record already in --out and start afresh")
 
     p_table = sub.add_parser("table", help="the paper's Table II, III or IV from result directories / summary CSVs")
     p_table.add_argument("results", nargs="+", help="result directories or summary.csv files")
@@ -96,6 +106,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_render.add_argument("--env", default="RaceObs-S-v0")
     p_render.add_argument("--seed", type=int, default=1_000_000)
     p_render.add_argument("--out", default="episode.gif")
+    p_render.add_argument("--trust-code", action="store_true", help="allow a .zip or module:Class agent (runs code)")
 
     p_train = sub.add_parser("train", help="train a baseline (PPO + GRU, curriculum, multi-scene) from a YAML config")
     p_train.add_argument("--config", required=True, help="baselines/<name>.yaml")
@@ -159,10 +170,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     elif args.command == "evaluate":
         return _evaluate(args)
     elif args.command == "table":
-        from racebench.evaluation import read_summaries
         from racebench.tables import make_table
 
-        text = make_table(read_summaries(args.results), args.table, args.format, ci=not args.no_ci)
+        text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci)
         if args.out:
             Path(args.out).write_text(text)
             print(f"wrote {args.out}")
@@ -170,9 +180,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(text)
     elif args.command == "plot":
         from racebench import plots
-        from racebench.evaluation import read_summaries
 
-        summary = read_summaries(args.results)
+        summary = _summaries(args.results, "plot")
         out = Path(args.out)
         written = []
         for name, make in (
@@ -199,10 +208,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         except ValueError as exc:
             raise SystemExit(f"racebench curves: {exc}") from exc
     elif args.command == "render":
+        from racebench.agents import AgentLoadError
         from racebench.plots import render_episode_gif
 
         _make(args.env)  # validates the id with a clear message
-        print(f"wrote {render_episode_gif(args.agent, args.env, args.seed, args.out)}")
+        try:
+            print(f"wrote {render_episode_gif(args.agent, args.env, args.seed, args.out, trust_code=args.trust_code)}")
+        except AgentLoadError as exc:
+            raise SystemExit(f"racebench render: {exc}") from exc
     elif args.command == "bench":
         from racebench.benchmark import BenchSettings, run_benchmark
 
@@ -216,6 +229,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def _summaries(results: Sequence[str], command: str):
+    """Summaries recomputed from the records of result directories; a bad path is a one-line error."""
+    from racebench.evaluation import read_summaries
+
+    try:
+        return read_summaries(results)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"racebench {command}: {exc}") from exc
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     from racebench.agents import AgentLoadError
     from racebench.evaluation import Evaluator
@@ -225,19 +248,27 @@ def _evaluate(args: argparse.Namespace) -> int:
             args.agent,
             envs=args.envs,
             episodes=args.episodes,
-            out_dir=args.out or Path("results") / (args.name or Path(args.agent).stem.replace(":", "_")),
+            out_dir=args.out,
             workers=args.workers,
             agent_name=args.name,
             save_trajectories=args.save_trajectories,
+            trust_code=args.trust_code,
+            force=args.force,
         )
     except (AgentLoadError, ValueError) as exc:
         raise SystemExit(f"racebench evaluate: {exc}") from exc
     todo = len(evaluator.pending())
     total = len(evaluator.env_ids) * evaluator.episodes
-    print(f"{evaluator.agent_name}: {total - todo}/{total} episodes already done in {evaluator.out_dir}, {todo} to run")
+    identity = evaluator.identity
+    what = f"{identity.kind}, sha256 {identity.sha256[:12]}, env version {racebench.ENV_VERSION}"
+    print(
+        f"{evaluator.agent_name} ({what}): "
+        f"{total - todo}/{total} episodes already done in {evaluator.out_dir}, {todo} to run"
+    )
     summary = evaluator.run()
-    shown = summary[summary["agent"] == evaluator.agent_name]
     columns = ["env_id", "n", "successes", "success_rate", "sr_ci_low", "sr_ci_high", "lap_time_median"]
+    order = {env_id: i for i, env_id in enumerate(evaluator.env_ids)}
+    shown = summary.sort_values("env_id", key=lambda ids: ids.map(order))
     print(shown[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     print(f"wrote {evaluator.out_dir / 'episodes.csv'} and {evaluator.out_dir / 'summary.csv'}")
     return 0

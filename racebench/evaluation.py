@@ -9,24 +9,27 @@ Protocol (versioned by :data:`SEED_PROTOCOL`):
 * An agent that raises, returns NaN or a wrongly shaped action ends that episode as a failure with the
   reason recorded (``crash_reason = "agent_error"``, ``error`` column); the sweep goes on.
 
-Output, in ``out_dir``: ``episodes.csv`` (one row per episode) and ``summary.csv`` (one row per agent ×
-env id: n, successes, success rate with a 95 % Wilson interval, median/mean lap time over successes).
-Each finished episode is first stored as its own small JSON record (written to a temporary file and
-renamed into place, so never half-written); the CSVs are rebuilt from the records the same way. Running
-again with the same ``out_dir`` resumes: finished episodes are kept and skipped, a killed run loses at
-most the episodes in flight.
+Every finished episode is stored as its own record (:mod:`racebench.records`), keyed to the exact policy
+(sha256 of its file, or a built-in's name and code version), the env version and the seed protocol, and
+written to a temporary file renamed into place. An output directory holds the records of **one** policy
+on one env version: evaluating another policy into it is refused (:class:`MixedResultsError`) unless
+``force`` clears it. Running again resumes: valid finished records are kept and skipped, an invalid one is
+named, moved to ``invalid/`` and its episode re-run, a killed run loses at most the episodes in flight.
+``episodes.csv`` and ``summary.csv`` (n, successes, success rate with a 95 % Wilson interval, lap-time
+statistics) are rebuilt from the validated records after every run; tables and figures recompute their
+summaries from the records too and never read a ``summary.csv`` back.
 """
 
 from __future__ import annotations
 
 import atexit
-import hashlib
 import json
+import logging
 import multiprocessing
 import os
 import re
-import subprocess
-import tempfile
+import shutil
+import sys
 import time
 import traceback
 from collections.abc import Iterable, Sequence
@@ -37,12 +40,24 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import pandas as pd
-from scipy.stats import binomtest
 from tqdm.auto import tqdm
 
 import racebench
-from racebench.agents import Agent, load_agent
-from racebench.registration import DENSITIES, GATE_SHIFTS
+from racebench.agents import Agent, PolicyIdentity, load_agent, policy_identity
+from racebench.records import (
+    RECORD_FIELDS,
+    InvalidRecordError,
+    atomic_write,
+    git_state,
+    host_info,
+    read_record,
+    record_name,
+    seal,
+)
+from racebench.registration import DENSITIES, ENV_VERSION, GATE_SHIFTS
+from racebench.statistics import wilson_interval
+
+logger = logging.getLogger("racebench")
 
 SEED_PROTOCOL = 1
 EVAL_SEED_BASE = 1_000_000
@@ -53,10 +68,8 @@ SUITES: dict[str, list[str]] = {
     "gates": [f"RaceObs-{t}-GateShift{s}-v0" for s in GATE_SHIFTS for t in TRACK_ORDER],
 }
 SUITES["paper"] = SUITES["main"] + SUITES["density"] + SUITES["gates"]
-EPISODE_COLUMNS: tuple[str, ...] = (
-    "agent", "privileged", "env_id", "track", "variant", "seed", "success", "lap_time", "crashed",
-    "crash_reason", "gates_passed", "return", "steps", "error", "racebench_version", "git_commit",
-)  # fmt: skip
+SEED_SET = "public"
+EPISODE_COLUMNS: tuple[str, ...] = RECORD_FIELDS  # episodes.csv: every record field
 _ID = re.compile(r"^RaceObs-(?P<track>[^-]+)(?:-(?P<variant>.+))?-v0$")
 
 
@@ -83,30 +96,6 @@ def split_env_id(env_id: str) -> tuple[str, str]:
     if not match:
         return env_id, "custom"
     return match["track"], match["variant"] or "default"
-
-
-def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion (``nan, nan`` when ``n == 0``)."""
-    if n == 0:
-        return float("nan"), float("nan")
-    ci = binomtest(successes, n).proportion_ci(confidence_level=confidence, method="wilson")
-    return float(ci.low), float(ci.high)
-
-
-def git_commit() -> str:
-    """The commit of the racebench checkout, or ``"unknown"`` outside a git checkout."""
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=Path(__file__).parent,
-            capture_output=True,
-            text=True,
-            timeout=5,
-            check=True,
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
 
 
 def _agent_error(obs_action: Any) -> tuple[np.ndarray | None, str | None]:
@@ -161,34 +150,13 @@ def run_episode(agent: Agent, env: gym.Env, seed: int, trajectory: list | None =
     }
 
 
-def atomic_write(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a synced temporary file and a rename: a kill leaves the old file or the new."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _record_name(agent: str, env_id: str, seed: int) -> str:
-    digest = hashlib.sha1(f"{agent}\0{env_id}\0{seed}".encode()).hexdigest()[:16]
-    return f"{digest}.json"
-
-
 # Worker-process state: one agent and one env per id, built once per process.
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(agent_spec: str, agent_name: str | None, env_kwargs: dict[str, Any]) -> None:
+def _worker_init(agent_spec: str, env_kwargs: dict[str, Any], trust_code: bool) -> None:
     _close_worker_envs()
-    agent = load_agent(agent_spec)
-    _WORKER.update(agent=agent, name=agent_name or agent.name, envs={}, env_kwargs=env_kwargs)
+    _WORKER.update(agent=load_agent(agent_spec, trust_code=trust_code), envs={}, env_kwargs=env_kwargs)
 
 
 def _close_worker_envs() -> None:
@@ -198,12 +166,12 @@ def _close_worker_envs() -> None:
     _WORKER["envs"] = {}
 
 
-def _pool_worker_init(agent_spec: str, agent_name: str | None, env_kwargs: dict[str, Any]) -> None:
+def _pool_worker_init(agent_spec: str, env_kwargs: dict[str, Any], trust_code: bool) -> None:
     import torch  # here: only learned agents need it, and they have imported it already
 
     torch.set_num_threads(1)  # one episode at a time per worker, one worker per core
     atexit.register(_close_worker_envs)
-    _worker_init(agent_spec, agent_name, env_kwargs)
+    _worker_init(agent_spec, env_kwargs, trust_code)
 
 
 def _worker_run(env_id: str, seed: int, save_trajectory: bool) -> tuple[str, int, dict[str, Any], dict | None]:
@@ -225,19 +193,50 @@ def _worker_run(env_id: str, seed: int, save_trajectory: bool) -> tuple[str, int
     return env_id, seed, result, flown
 
 
+class MixedResultsError(ValueError):
+    """An output directory holds records of another policy, label or env version than the one asked."""
+
+
+def default_out_dir(agent_name: str, identity: PolicyIdentity) -> Path:
+    """``runs/eval/<agent>-<first 10 hex of the policy sha256>``: fresh per policy, outside version control."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", agent_name)
+    return Path("runs") / "eval" / f"{safe}-{identity.sha256[:10]}"
+
+
+class SingleTorchThread:
+    """Context: run a policy in this process with one torch thread, restored on exit.
+
+    Batch-1 policy calls with torch's default thread count oversubscribe small machines (seen: 15 instead
+    of ~150 env steps/s on 2 cores); with one thread a call costs ~1 ms.
+    """
+
+    def __enter__(self) -> None:
+        self.torch = sys.modules.get("torch")
+        if self.torch is not None:
+            self.saved = self.torch.get_num_threads()
+            self.torch.set_num_threads(1)
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.torch is not None:
+            self.torch.set_num_threads(self.saved)
+
+
 class Evaluator:
-    """Evaluate one agent on env ids over the fixed evaluation seeds, resumably.
+    """Evaluate one agent on env ids over the fixed evaluation seeds, resumably, keyed to the exact policy.
 
     Args:
         agent_spec: see :func:`racebench.agents.load_agent`.
         envs: env ids and/or suite names.
         episodes: episodes per env id (the paper: 10).
-        out_dir: where ``episodes.csv``, ``summary.csv`` and the per-episode records go.
+        out_dir: where the records, ``episodes.csv`` and ``summary.csv`` go (default
+            :func:`default_out_dir`). It may hold the records of this policy only.
         workers: processes to use (each builds its own agent and envs).
-        agent_name: name in the CSVs (default: the agent's own name).
+        agent_name: label in the CSVs (default: the agent's own name); it never selects records.
         save_trajectories: also store each episode's positions and scene (for the 3D track figure).
         env_kwargs: extra kwargs for every ``gym.make`` (e.g. ``renderer``); recorded nowhere, so keep
             them to ones that do not change the task.
+        trust_code: allow agents whose loading runs code from a file (see :func:`~racebench.agents.load_agent`).
+        force: discard every record already in ``out_dir`` (whatever produced it) and evaluate afresh.
     """
 
     def __init__(
@@ -245,11 +244,13 @@ class Evaluator:
         agent_spec: str,
         envs: Sequence[str] = ("main",),
         episodes: int = 10,
-        out_dir: str | Path = "results",
+        out_dir: str | Path | None = None,
         workers: int = 1,
         agent_name: str | None = None,
         save_trajectories: bool = False,
         env_kwargs: dict[str, Any] | None = None,
+        trust_code: bool = False,
+        force: bool = False,
     ) -> None:
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -258,60 +259,123 @@ class Evaluator:
         self.agent_spec = agent_spec
         self.env_ids = resolve_envs(envs)
         self.episodes = episodes
-        self.out_dir = Path(out_dir)
         self.workers = workers
         self.save_trajectories = save_trajectories
         self.env_kwargs = env_kwargs or {}
-        probe = load_agent(agent_spec)  # fail fast, in this process, on a bad spec
+        self.trust_code = trust_code
+        probe = load_agent(agent_spec, trust_code=trust_code)  # fail fast, in this process, on a bad spec
+        self.identity = policy_identity(agent_spec)
+        if getattr(probe, "sha256", self.identity.sha256) != self.identity.sha256:
+            raise ValueError(f"{agent_spec!r} changed while it was being loaded")
         self.agent_name = agent_name or probe.name
-        self.privileged = bool(getattr(probe, "privileged", False))
+        self.privileged = self.identity.privileged
+        self.out_dir = Path(out_dir) if out_dir is not None else default_out_dir(self.agent_name, self.identity)
         self.records_dir = self.out_dir / "records"
-        self.version = racebench.__version__
-        self.commit = git_commit()
+        if force:
+            self._clear()
+        self.done = self._scan()
+
+    # ----------------------------------------------------------------- records
+    def _clear(self) -> None:
+        for sub in ("records", "trajectories", "invalid"):
+            shutil.rmtree(self.out_dir / sub, ignore_errors=True)
+        for name in ("episodes.csv", "summary.csv"):
+            (self.out_dir / name).unlink(missing_ok=True)
+
+    def _scan(self) -> set[str]:
+        """Validate what ``out_dir`` holds: invalid records are set aside, another policy's are refused."""
+        done: set[str] = set()
+        for path in sorted(self.records_dir.glob("*.json")):
+            try:
+                record = read_record(path)
+            except InvalidRecordError as exc:
+                self._set_aside(path, str(exc))
+                continue
+            mine = (record["policy_sha256"], record["env_version"], record["seed_set"])
+            if mine != (self.identity.sha256, ENV_VERSION, SEED_SET):
+                raise MixedResultsError(
+                    f"{self.out_dir} holds results of another policy or env version ({record['policy_source']!r}, "
+                    f"sha256 {record['policy_sha256'][:12]}, env version {record['env_version']}); this is "
+                    f"{self.identity.source!r}, sha256 {self.identity.sha256[:12]}, env version {ENV_VERSION}: "
+                    "choose another --out, or --force to discard them"
+                )
+            if record["agent"] != self.agent_name:
+                raise MixedResultsError(
+                    f"{self.out_dir} labels this policy {record['agent']!r}, not {self.agent_name!r}: "
+                    f"use --name {record['agent']}, another --out, or --force to discard them"
+                )
+            done.add(path.name)
+        return done
+
+    def _set_aside(self, path: Path, reason: str) -> None:
+        aside = self.out_dir / "invalid"
+        aside.mkdir(parents=True, exist_ok=True)
+        os.replace(path, aside / path.name)
+        atomic_write(aside / f"{path.name}.reason.txt", reason + "\n")
+        logger.warning("racebench: invalid record set aside, its episode will be re-run: %s", reason)
+
+    def _name(self, env_id: str, seed: int) -> str:
+        return record_name(self.identity.sha256, env_id, ENV_VERSION, SEED_PROTOCOL, SEED_SET, seed)
 
     def pending(self) -> list[tuple[str, int]]:
-        """(env id, seed) pairs without a finished record."""
+        """(env id, seed) pairs of this evaluation without a valid finished record."""
         return [
             (env_id, seed)
             for env_id in self.env_ids
             for seed in eval_seeds(self.episodes)
-            if not (self.records_dir / _record_name(self.agent_name, env_id, seed)).exists()
+            if self._name(env_id, seed) not in self.done
         ]
 
     def _store(self, env_id: str, seed: int, result: dict[str, Any], flown: dict | None) -> None:
         track, variant = split_env_id(env_id)
-        row = {
-            "agent": self.agent_name,
-            "privileged": self.privileged,
-            "env_id": env_id,
-            "track": track,
-            "variant": variant,
-            "seed": seed,
-            **result,
-            "racebench_version": self.version,
-            "git_commit": self.commit,
-        }
+        commit, dirty = git_state()
+        record = seal(
+            {
+                "record_format": 2,
+                "agent": self.agent_name,
+                "policy_kind": self.identity.kind,
+                "policy_sha256": self.identity.sha256,
+                "policy_source": self.identity.source,
+                "privileged": self.privileged,
+                "env_id": env_id,
+                "track": track,
+                "variant": variant,
+                "env_version": ENV_VERSION,
+                "seed": seed,
+                "seed_protocol": SEED_PROTOCOL,
+                "seed_set": SEED_SET,
+                **result,
+                "racebench_version": racebench.__version__,
+                "git_commit": commit,
+                "git_dirty": dirty,
+                **host_info(),
+            }
+        )
+        name = self._name(env_id, seed)
         if flown is not None:
             traj_dir = self.out_dir / "trajectories"
             traj_dir.mkdir(parents=True, exist_ok=True)
-            name = _record_name(self.agent_name, env_id, seed).replace(".json", ".npz")
             tmp = traj_dir / f".{name}.tmp.npz"
             scene = json.dumps(flown["scene"])
-            np.savez_compressed(tmp, positions=flown["positions"], scene=scene, row=json.dumps(row))
-            os.replace(tmp, traj_dir / name)
-        atomic_write(self.records_dir / _record_name(self.agent_name, env_id, seed), json.dumps(row))
+            np.savez_compressed(tmp, positions=flown["positions"], scene=scene, row=json.dumps(record))
+            os.chmod(tmp, 0o644)
+            os.replace(tmp, traj_dir / name.replace(".json", ".npz"))
+        atomic_write(self.records_dir / name, json.dumps(record, indent=1))
+        self.done.add(name)
 
+    # --------------------------------------------------------------------- run
     def run(self, progress: bool = True) -> pd.DataFrame:
-        """Run every pending episode, then write the CSVs; returns the summary of this output directory."""
+        """Run every pending episode, rebuild the CSVs; return the summary of exactly the asked ids × seeds."""
         todo = self.pending()
         started = time.perf_counter()
         bar = tqdm(total=len(todo), desc=f"{self.agent_name}", disable=not progress, unit="ep")
         if self.workers == 1 or len(todo) <= 1:
-            _worker_init(self.agent_spec, self.agent_name, self.env_kwargs)
-            for env_id, seed in todo:
-                self._store(*_worker_run(env_id, seed, self.save_trajectories))
-                bar.update()
-            _close_worker_envs()
+            with SingleTorchThread():
+                _worker_init(self.agent_spec, self.env_kwargs, self.trust_code)
+                for env_id, seed in todo:
+                    self._store(*_worker_run(env_id, seed, self.save_trajectories))
+                    bar.update()
+                _close_worker_envs()
         else:
             # "spawn": a forked child of a process that has run torch can deadlock in torch's thread pool
             # (seen: --workers 2 with a GRU checkpoint hung at start).
@@ -319,7 +383,7 @@ class Evaluator:
                 self.workers,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=_pool_worker_init,
-                initargs=(self.agent_spec, self.agent_name, self.env_kwargs),
+                initargs=(self.agent_spec, self.env_kwargs, self.trust_code),
             ) as pool:
                 futures = [pool.submit(_worker_run, env_id, seed, self.save_trajectories) for env_id, seed in todo]
                 for future in as_completed(futures):
@@ -327,12 +391,24 @@ class Evaluator:
                     bar.update()
         bar.close()
         self.elapsed = time.perf_counter() - started
-        return write_tables(self.out_dir)
+        episodes = write_tables(self.out_dir)
+        asked = {(e, s) for e in self.env_ids for s in eval_seeds(self.episodes)}
+        selected = episodes[[(e, s) in asked for e, s in zip(episodes["env_id"], episodes["seed"], strict=True)]]
+        return summarize(selected)
 
 
 def load_records(out_dir: str | Path) -> pd.DataFrame:
-    """Every finished episode under ``out_dir`` as a DataFrame with :data:`EPISODE_COLUMNS`."""
-    rows = [json.loads(p.read_text()) for p in sorted((Path(out_dir) / "records").glob("*.json"))]
+    """Every valid record under ``out_dir/records`` as a DataFrame with :data:`EPISODE_COLUMNS`.
+
+    An invalid record is named in a warning and left out (never counted); :class:`Evaluator` sets such
+    records aside and re-runs their episodes.
+    """
+    rows = []
+    for path in sorted((Path(out_dir) / "records").glob("*.json")):
+        try:
+            rows.append(read_record(path))
+        except InvalidRecordError as exc:
+            logger.warning("racebench: invalid record left out: %s", exc)
     frame = pd.DataFrame(rows, columns=list(EPISODE_COLUMNS))
     return frame.sort_values(["agent", "env_id", "seed"], kind="stable").reset_index(drop=True)
 
@@ -367,26 +443,31 @@ def summarize(episodes: pd.DataFrame) -> pd.DataFrame:
 
 
 def write_tables(out_dir: str | Path) -> pd.DataFrame:
-    """Rebuild ``episodes.csv`` and ``summary.csv`` in ``out_dir`` from its records (atomically)."""
+    """Rebuild ``episodes.csv`` and ``summary.csv`` in ``out_dir`` from its valid records; return the episodes."""
     out_dir = Path(out_dir)
     episodes = load_records(out_dir)
-    summary = summarize(episodes)
     atomic_write(out_dir / "episodes.csv", episodes.to_csv(index=False))
-    atomic_write(out_dir / "summary.csv", summary.to_csv(index=False, float_format="%.4f"))
-    return summary
+    atomic_write(out_dir / "summary.csv", summarize(episodes).to_csv(index=False, float_format="%.4f"))
+    return episodes
 
 
 def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
-    """Concatenate summaries from result directories or ``summary.csv``/``episodes.csv`` files."""
+    """Summaries of result directories, recomputed from their validated records.
+
+    A path to a ``summary.csv`` or ``episodes.csv`` stands for the directory holding it: the CSV itself is
+    never read back, so an edited CSV cannot change a table.
+    """
     frames = []
     for path in paths:
         path = Path(path)
-        if path.is_dir():
-            path = path / "summary.csv"
-        if not path.is_file():
-            raise FileNotFoundError(f"no results at {str(path)!r}")
-        frame = pd.read_csv(path)
-        frames.append(summarize(frame) if "seed" in frame.columns else frame)
+        if path.is_file() and path.name in ("summary.csv", "episodes.csv"):
+            path = path.parent
+        if not (path / "records").is_dir():
+            raise FileNotFoundError(f"no evaluation records at {str(path)!r} (expected {str(path / 'records')!r})")
+        episodes = load_records(path)
+        if episodes.empty:
+            raise ValueError(f"no valid evaluation records in {str(path)!r}")
+        frames.append(summarize(episodes))
     if not frames:
-        raise ValueError("no result files given")
+        raise ValueError("no result directories given")
     return pd.concat(frames, ignore_index=True)

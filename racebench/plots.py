@@ -172,14 +172,16 @@ def plot_track_3d(
     return _save(fig, path)
 
 
-def render_episode_gif(agent_spec: str, env_id: str, seed: int, path: str | Path, fps: int = 25) -> Path:
+def render_episode_gif(
+    agent_spec: str, env_id: str, seed: int, path: str | Path, fps: int = 25, trust_code: bool = False
+) -> Path:
     """Fly one episode and write a GIF: chase-camera view beside the onboard inverse-depth image."""
     import gymnasium as gym
 
     from racebench.agents import load_agent
-    from racebench.evaluation import run_episode
+    from racebench.evaluation import SingleTorchThread, run_episode
 
-    agent = load_agent(agent_spec)
+    agent = load_agent(agent_spec, trust_code=trust_code)
     env = gym.make(env_id, render_mode="rgb_array", obs_mode="vision")
     frames: list[Image.Image] = []
     every = max(1, round(env.unwrapped.control_freq / fps))
@@ -196,7 +198,8 @@ def render_episode_gif(agent_spec: str, env_id: str, seed: int, path: str | Path
         # The recorder, inside, still sees the depth image; the state agent gets the state alone.
         state_space = env.unwrapped.observation_space["state"]
         wrapped = gym.wrappers.TransformObservation(wrapped, lambda o: o["state"], state_space)
-    result = run_episode(agent, wrapped, seed)
+    with SingleTorchThread():
+        result = run_episode(agent, wrapped, seed)
     env.close()
     if not frames:
         raise RuntimeError(f"episode produced no frames ({result})")

@@ -13,6 +13,11 @@ from typing import Any
 
 import gymnasium as gym
 
+#: Version of the environments' outcomes. Before racebench 1.0 the ids stay ``-v0``; every evaluation record
+#: carries this number instead, and any change that can change an episode's outcome (physics, collision or gate
+#: logic, scene generation, time limits) bumps it, so results of different versions are never mixed.
+ENV_VERSION = 1
+
 TRACK_IDS: dict[str, str] = {"S": "S", "J": "J", "Circle": "Circle"}
 DENSITIES: tuple[int, ...] = (2, 3, 4, 5)
 GATE_SHIFTS: tuple[str, ...] = ("0.3", "0.5", "0.7", "1.0")

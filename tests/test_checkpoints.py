@@ -1,34 +1,72 @@
-"""The committed baseline checkpoints load with today's code and replay their committed evaluation episodes.
+"""The committed baseline checkpoints reproduce their committed success rates, checked statistically.
 
-This is the leaderboard's promise in test form: a number in ``baselines/checkpoints/*/eval/episodes.csv`` is
-what ``racebench evaluate`` gives for that checkpoint and seed on a fresh clone.
+A learned policy's closed loop amplifies last-bit float differences between CPUs (another machine flew 7 of
+20 committed ``vision-ppo-S`` episodes differently: 13/20 successes against the committed 14/20), so a
+bit-identical replay is not a promise the benchmark can make for learned policies. The promise is the
+success rate: on any machine, a replay of the first :data:`REPLAY` evaluation seeds of ``RaceObs-S-v0`` must
+be consistent with the committed count (Fisher's exact test, false-fail rate at most
+:data:`~racebench.statistics.CONSISTENCY_ALPHA` = 0.1 %). With 100 committed and 40 replayed episodes, a
+committed count moved by :data:`DOCTORED` episodes or more, in either direction the range allows, is
+rejected (``test_a_doctored_claim_is_rejected``). Bit-identical replay is tested where it holds: built-in
+agents on one machine (``tests/test_records.py``).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import pandas as pd
 import pytest
 
-from racebench.evaluation import Evaluator
+from racebench import ENV_VERSION
+from racebench.agents import TRUSTED_CHECKPOINTS
+from racebench.evaluation import Evaluator, load_records
+from racebench.records import sha256_file
+from racebench.statistics import counts_consistent
 
-CHECKPOINTS = sorted(Path(__file__).parents[1].glob("baselines/checkpoints/*/*.zip"))
+ROOT = Path(__file__).parents[1]
+CHECKPOINTS = sorted(ROOT.glob("baselines/checkpoints/*/*.zip"))
+ENV = "RaceObs-S-v0"
+REPLAY = 40  # replayed episodes per checkpoint (the first seeds of the protocol)
+DOCTORED = 33  # of 100 committed episodes: a claim moved this far is caught
 
 
-def test_checkpoints_are_committed() -> None:
-    names = {p.parent.name for p in CHECKPOINTS}
-    assert {"state-ppo-S", "vision-ppo-S"} <= names
+def committed_count(checkpoint: Path) -> tuple[int, int]:
+    """(successes, episodes) of the committed evaluation of ``checkpoint`` on :data:`ENV`, from its records."""
+    records = load_records(checkpoint.parent / "eval")
+    records = records[records["env_id"] == ENV]
+    assert len(records) >= 100, f"{checkpoint.parent.name}: commit at least 100 episodes of {ENV}"
+    assert set(records["policy_sha256"]) == {sha256_file(checkpoint)}, "evaluation of another file"
+    assert set(records["env_version"]) == {ENV_VERSION}, "evaluated on another env version: re-evaluate"
+    return int(records["success"].sum()), len(records)
+
+
+def test_checkpoints_are_committed_and_trusted() -> None:
+    assert {p.parent.name for p in CHECKPOINTS} >= {"state-ppo-S", "vision-ppo-S"}
+    assert {sha256_file(p) for p in CHECKPOINTS} == set(TRUSTED_CHECKPOINTS)
 
 
 @pytest.mark.parametrize("checkpoint", CHECKPOINTS, ids=lambda p: p.parent.name)
-def test_checkpoint_replays_its_evaluation(checkpoint: Path, tmp_path: Path) -> None:
-    recorded = pd.read_csv(checkpoint.parent / "eval" / "episodes.csv")
-    # The first episode of each evaluated env: seed protocol episode 0, so ``episodes=1`` replays it.
-    first = recorded.sort_values("seed").groupby("env_id", sort=False).head(1).set_index("env_id")
-    evaluator = Evaluator(str(checkpoint), list(first.index), episodes=1, out_dir=tmp_path)
-    evaluator.run(progress=False)
-    replayed = pd.read_csv(tmp_path / "episodes.csv").set_index("env_id").loc[first.index]
-    for column in ("seed", "success", "crashed", "gates_passed", "steps"):
-        assert list(replayed[column]) == list(first[column]), column
-    pd.testing.assert_series_equal(replayed["return"], first["return"], rtol=1e-6)
+def test_checkpoint_reproduces_its_committed_success_rate(checkpoint: Path, tmp_path: Path) -> None:
+    k0, n0 = committed_count(checkpoint)
+    summary = Evaluator(str(checkpoint), [ENV], episodes=REPLAY, out_dir=tmp_path).run(progress=False)
+    k1 = int(summary["successes"].iloc[0])
+    verdict = counts_consistent((k0, n0), (k1, REPLAY))
+    assert verdict.consistent, f"replayed {k1}/{REPLAY} against committed {k0}/{n0}: p = {verdict.p_value:.2g}"
+
+
+@pytest.mark.parametrize("checkpoint", CHECKPOINTS, ids=lambda p: p.parent.name)
+def test_a_doctored_claim_is_rejected(checkpoint: Path) -> None:
+    """At the replay count the committed rate predicts, a claim moved by :data:`DOCTORED` of 100 fails the test."""
+    k0, n0 = committed_count(checkpoint)
+    expected = round(k0 / n0 * REPLAY)
+    moved = round(DOCTORED * n0 / 100)
+    doctored = [k for k in (k0 - moved, k0 + moved) if 0 <= k <= n0]
+    assert doctored, "no room to doctor"
+    for k in doctored:
+        assert not counts_consistent((k, n0), (expected, REPLAY)).consistent, (k, n0, expected)
+    assert counts_consistent((k0, n0), (expected, REPLAY)).consistent
+
+
+def test_the_other_cpus_replay_is_accepted() -> None:
+    """Issue #9's measurement: 13/20 on another CPU against the committed 14/20 passes."""
+    assert counts_consistent((14, 20), (13, 20)).consistent

@@ -115,7 +115,9 @@ def test_failing_agent_fails_its_episodes_and_the_sweep_goes_on(
     tmp_path: Path, bad_agents: Path, cls: str, reason: str
 ) -> None:
     out = tmp_path / "out"
-    summary = Evaluator(f"{bad_agents}:{cls}", ["RaceObs-S-Level1-v0"], episodes=2, out_dir=out).run(progress=False)
+    summary = Evaluator(f"{bad_agents}:{cls}", ["RaceObs-S-Level1-v0"], episodes=2, out_dir=out, trust_code=True).run(
+        progress=False
+    )
     assert summary["n"].tolist() == [2] and summary["successes"].tolist() == [0]
     episodes = pd.read_csv(out / "episodes.csv")
     assert (episodes["crash_reason"] == "agent_error").all()
@@ -126,15 +128,15 @@ def test_bad_agent_specs_are_named(tmp_path: Path, bad_agents: Path) -> None:
     with pytest.raises(AgentLoadError, match="unknown agent spec 'pilot'"):
         load_agent("pilot")
     with pytest.raises(AgentLoadError, match="no method act"):
-        load_agent(f"{bad_agents}:NoAct")
+        load_agent(f"{bad_agents}:NoAct", trust_code=True)
     with pytest.raises(AgentLoadError, match="has no attribute 'Nope'"):
-        load_agent(f"{bad_agents}:Nope")
+        load_agent(f"{bad_agents}:Nope", trust_code=True)
     with pytest.raises(AgentLoadError, match="does not exist"):
         load_agent(str(tmp_path / "missing.zip"))
     corrupt = tmp_path / "corrupt.zip"
     corrupt.write_bytes(b"PK\x03\x04 this is not really a checkpoint")
     with pytest.raises(AgentLoadError, match="corrupt.zip"):
-        load_agent(str(corrupt))
+        load_agent(str(corrupt), trust_code=True)
     broken_onnx = tmp_path / "broken.onnx"
     broken_onnx.write_bytes(b"\x00\x01garbage")
     with pytest.raises(AgentLoadError, match="broken.onnx"):
@@ -199,7 +201,7 @@ def tiny_ppo(tmp_path_factory: pytest.TempPathFactory):
 
 def test_sb3_checkpoint_round_trip(tiny_ppo) -> None:
     model, path = tiny_ppo
-    agent = load_agent(str(path))
+    agent = load_agent(str(path), trust_code=True)
     assert isinstance(agent, SB3Agent) and agent.obs_mode == "state" and agent.name == "tiny_ppo"
     obs = np.random.default_rng(0).uniform(-1, 1, size=(5, 17)).astype(np.float32)
     agent.reset()
@@ -211,9 +213,9 @@ def test_worker_processes_give_the_same_episodes(tiny_ppo, tmp_path: Path) -> No
     """``workers=2`` (spawned processes, after torch ran in this one) records what one process records."""
     _, path = tiny_ppo
     envs = ["RaceObs-S-Level1-v0", "RaceObs-S-v0"]
-    Evaluator(str(path), envs, episodes=2, out_dir=tmp_path / "one").run(progress=False)
+    Evaluator(str(path), envs, episodes=2, out_dir=tmp_path / "one", trust_code=True).run(progress=False)
     pool_run = threading.Thread(  # a deadlocked pool fails the test instead of hanging the suite
-        target=Evaluator(str(path), envs, episodes=2, out_dir=tmp_path / "two", workers=2).run,
+        target=Evaluator(str(path), envs, episodes=2, out_dir=tmp_path / "two", workers=2, trust_code=True).run,
         kwargs={"progress": False},
         daemon=True,
     )
@@ -244,7 +246,7 @@ def test_recurrent_sb3_checkpoint_carries_state(tmp_path: Path) -> None:
                          policy_kwargs={"lstm_hidden_size": 8, "net_arch": [8]}, device="cpu")  # fmt: skip
     model.learn(32)
     model.save(tmp_path / "lstm.zip")
-    agent = load_agent(str(tmp_path / "lstm.zip"))
+    agent = load_agent(str(tmp_path / "lstm.zip"), trust_code=True)
     assert agent.recurrent
     obs = np.random.default_rng(2).uniform(-1, 1, size=(4, 17)).astype(np.float32)
     agent.reset()

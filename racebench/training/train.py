@@ -41,7 +41,8 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList, Check
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, VecNormalize
 
-from racebench.evaluation import EVAL_SEED_BASE, atomic_write
+from racebench.evaluation import EVAL_SEED_BASE
+from racebench.records import atomic_write
 from racebench.registration import CURRICULUM
 from racebench.sb3 import make_sb3_vec_env
 from racebench.track import BUILTIN_TRACKS
@@ -567,7 +568,9 @@ def train(
     if eval_episodes > 0:
         from racebench.evaluation import Evaluator
 
-        evaluator = Evaluator(str(final), [f"RaceObs-{track}-v0"], episodes=eval_episodes, out_dir=out / "eval")
+        evaluator = Evaluator(  # this run's own checkpoint, written by this process: trusted
+            str(final), [f"RaceObs-{track}-v0"], episodes=eval_episodes, out_dir=out / "eval", trust_code=True
+        )
         result = evaluator.run(progress=False).iloc[0]
         summary["eval"] = {k: _plain(result[k]) for k in ("n", "successes", "success_rate", "lap_time_mean")}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))

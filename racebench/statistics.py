@@ -1,0 +1,70 @@
+"""Statistics of success rates: Wilson intervals and a test that two success counts agree.
+
+A learned policy's closed loop amplifies last-bit float differences between CPUs, so the same checkpoint
+on the same seeds can give a different episode on another machine. What the benchmark promises about a
+learned policy is therefore a *success rate*, checked statistically (:func:`counts_consistent`), not a
+bit-identical replay.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from scipy.stats import binomtest, fisher_exact
+
+#: False-fail rate of :func:`counts_consistent` (two-sided): a reproduction of a committed count is
+#: rejected by chance at most this often.
+CONSISTENCY_ALPHA = 0.001
+
+
+def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (``nan, nan`` when ``n == 0``)."""
+    if n == 0:
+        return float("nan"), float("nan")
+    ci = binomtest(successes, n).proportion_ci(confidence_level=confidence, method="wilson")
+    return float(ci.low), float(ci.high)
+
+
+@dataclass(frozen=True)
+class Consistency:
+    """Outcome of :func:`counts_consistent`: the p-value of Fisher's exact test and the verdict."""
+
+    p_value: float
+    alpha: float
+
+    @property
+    def consistent(self) -> bool:
+        """True when the counts are consistent at the false-fail rate ``alpha``."""
+        return self.p_value >= self.alpha
+
+
+def counts_consistent(
+    committed: tuple[int, int], replayed: tuple[int, int], alpha: float = CONSISTENCY_ALPHA
+) -> Consistency:
+    """Are ``replayed = (k1, n1)`` successes consistent with a ``committed = (k0, n0)`` claim of the same policy?
+
+    Two-sided Fisher exact test of equal success probability, rejected when ``p < alpha``. The test treats
+    the two samples as independent. A replay of the *same* seeds is positively correlated with the
+    committed sample, which only narrows the spread of ``k1/n1 - k0/n0``, so the false-fail rate stays
+    at most ``alpha`` (the test is conservative there).
+    """
+    (k0, n0), (k1, n1) = committed, replayed
+    for k, n in (committed, replayed):
+        if not (0 <= k <= n and n > 0):
+            raise ValueError(f"a success count must satisfy 0 <= k <= n, n > 0; got k={k}, n={n}")
+    p = fisher_exact([[k0, n0 - k0], [k1, n1 - k1]], alternative="two-sided").pvalue
+    return Consistency(float(p), alpha)
+
+
+def detectable_doctoring(committed: tuple[int, int], replayed: tuple[int, int], alpha: float = CONSISTENCY_ALPHA):
+    """The committed counts that :func:`counts_consistent` would reject against ``replayed``.
+
+    Returns ``(low, high)``: every committed count ``k <= low`` or ``k >= high`` (out of the same ``n0``)
+    is rejected, i.e. a claim doctored that far from what the replay shows is caught. ``low`` is ``-1``
+    or ``high`` is ``n0 + 1`` when no count on that side is rejected.
+    """
+    _, n0 = committed
+    rejected = [k for k in range(n0 + 1) if not counts_consistent((k, n0), replayed, alpha).consistent]
+    below = [k for k in rejected if k < committed[0]]
+    above = [k for k in rejected if k > committed[0]]
+    return (max(below) if below else -1), (min(above) if above else n0 + 1)
