@@ -279,8 +279,8 @@ def test_builtin_baseline_names_resolve_and_unknown_ones_are_named() -> None:
 def test_checkpoint_save_load_same_actions(tmp_path: Path) -> None:
     config = small(TrainConfig.from_yaml(BASELINES[0].parent / "vision-ppo.yaml"))
     result = train(config, "S", steps=64, seed=0, out=tmp_path, eval_episodes=0)
-    agent_a = SB3Agent(result["checkpoint"])
-    agent_b = SB3Agent(result["checkpoint"])
+    agent_a = SB3Agent(result["checkpoint"], trust_code=True)
+    agent_b = SB3Agent(result["checkpoint"], trust_code=True)
     assert agent_a.recurrent and agent_a.obs_mode == "vision"
     rng = np.random.default_rng(0)
     obs = [
