@@ -352,8 +352,11 @@ def _bench_parts(rec: _Recorder, s: BenchSettings) -> None:
     raw = sim.raw_state
     zero = (0.0, 0.0, 0.0)
     weight = (0.0, 0.0, env.params.mass * env.params.gravity)
-    substep_c = per_call(lambda: (sim.step_raw(weight, zero, raw[0]), sim.contact()))
+    substep_c = per_call(lambda: sim.step_raw(weight, zero, raw[0]))
     env.reset(seed=s.seed)
+    p0 = tuple(env.drone.position.tolist())
+    p1 = (p0[0] + 0.05, p0[1], p0[2])  # a 10 m/s substep
+    collision = per_call(lambda: env.collision.contact(p0, p1))
     advance = per_call(lambda: env.advance(hover))
     env.reset(seed=s.seed)
     state = per_call(env._state_vector)
@@ -365,8 +368,16 @@ def _bench_parts(rec: _Recorder, s: BenchSettings) -> None:
         env.reset_state(seed=s.seed + k)
     reset = (time.perf_counter() - start) / 10 * 1e6
     env.close()
-    rec.add("parts", "physics substep, PyBullet calls only", substep_c, "us", "step + state query + contacts")
+    rec.add("parts", "physics substep, PyBullet calls only", substep_c, "us", "step + state query")
+    rec.add("parts", "collision check (swept sphere, 1 substep)", collision, "us", "exact geometry, every substep")
     rec.add("parts", f"env.advance ({env.substeps} substeps + reward)", advance, "us")
+    rec.add(
+        "parts",
+        "collision checks / env.advance",
+        env.substeps * collision / advance,
+        "ratio",
+        "target <= 0.10 of a step",
+    )
     rec.add("parts", "state observation", state, "us")
     rec.add("parts", "depth render (raycast, 1 camera)", render, "us")
     rec.add("parts", "depth normalise + Gaussian noise", noise, "us", "4096 normal draws")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from typing import Any
 
 import gymnasium as gym
@@ -18,6 +19,7 @@ from gymnasium import spaces
 from numba import njit
 
 from racebench.camera import DepthCamera
+from racebench.collision import CollisionChecker
 from racebench.obstacles import ObstacleGenerator
 from racebench.quadrotor import Quadrotor, QuadrotorParams
 from racebench.reward import REWARD_TERMS, RewardWeights, reward_terms
@@ -58,10 +60,13 @@ class RaceEnv(gym.Env):
     Reward: the paper's seven terms (:mod:`racebench.reward`), each reported in ``info["reward_terms"]``.
 
     Episode: success when the last gate (sprint) or every gate of one lap (loop) is passed in order;
-    ``terminated`` on success, any contact (gate, obstacle, ground) or leaving the arena;
-    ``truncated`` at ``max_episode_time``. ``info``: ``is_success``, ``lap_time`` (s, successful
-    episodes only, else ``None``), ``gates_passed``, ``crashed``, ``crash_reason``, ``reward_terms``, ``time``,
-    ``start_gate`` (the first gate to pass: 0 unless ``start_mode="gates"``).
+    ``terminated`` on success, on any touch of a gate frame, an obstacle or the ground (the drone's collision
+    sphere swept along each physics substep comes within 1 mm of it, by exact geometry: see
+    :mod:`racebench.collision`) or on leaving the arena; ``truncated`` at ``max_episode_time``. A gate is
+    passed by crossing its plane inside the opening on a substep that touched nothing. ``info``:
+    ``is_success``, ``lap_time`` (s, successful episodes only, else ``None``), ``gates_passed``, ``crashed``,
+    ``crash_reason`` (``"gate:<i>"``, ``"obstacle:<j>"``, ``"ground"``, ``"out_of_bounds"``), ``reward_terms``,
+    ``time``, ``start_gate`` (the first gate to pass: 0 unless ``start_mode="gates"``).
 
     Args:
         track: built-in track name (``"S"``, ``"J"``, ``"Circle"``) or a track YAML path.
@@ -131,10 +136,14 @@ class RaceEnv(gym.Env):
             raise ValueError(f"physics_freq ({physics_freq}) must be a multiple of control_freq ({control_freq})")
         if physics_freq < 100:
             raise ValueError(f"physics_freq must be >= 100 Hz for the rate loop and motor lag, got {physics_freq}")
-        if not (isinstance(desired_speed, (int, float)) and desired_speed > 0):
-            raise ValueError(f"desired_speed must be > 0 m/s, got {desired_speed!r}")
-        if not (isinstance(max_episode_time, (int, float)) and max_episode_time > 0):
-            raise ValueError(f"max_episode_time must be > 0 s, got {max_episode_time!r}")
+        _check_number("desired_speed", desired_speed, "m/s", positive=True)
+        _check_number("max_episode_time", max_episode_time, "s", positive=True)
+        _check_number("depth_noise_std", depth_noise_std, "", positive=False)
+        _check_number("gate_shift", gate_shift, "m", positive=False)
+        if gate_shift_z is not None:
+            _check_number("gate_shift_z", gate_shift_z, "m", positive=False)
+        if not isinstance(track, (str, os.PathLike)) or isinstance(track, bytes):
+            raise ValueError(f"track must be a built-in track name or a track file path, got {track!r}")
 
         self.track: Track = load_track(track)
         if start_spread is not None:
@@ -203,6 +212,7 @@ class RaceEnv(gym.Env):
 
         For batched stepping (:class:`~racebench.vector.RaceVectorEnv`), which renders many envs' depth at once.
         """
+        self._require_open("reset")
         super().reset(seed=seed)
         for name, value in self._next_task.items():  # staged by set_task
             setattr(self, name, value)
@@ -225,6 +235,7 @@ class RaceEnv(gym.Env):
         if self.start_mode == "gates" and "scene" not in options:
             scene, self.start_gate, velocity = self._start_before_a_gate(scene)
         self.scene = scene
+        self.collision = CollisionChecker(scene, self.params.collision_radius)
         self.sim.load_scene(scene)
         self.sim.reset_drone(scene.start_position, scene.start_yaw, velocity)
         self.quad.reset(hover=True)
@@ -276,6 +287,7 @@ class RaceEnv(gym.Env):
         For batched stepping (:class:`~racebench.vector.RaceVectorEnv`), which then renders the depth of
         many envs in one call; follow it with :meth:`observation` to complete the step.
         """
+        self._require_open("step")
         if self.scene is None:
             raise RuntimeError("call reset() before step()")
         a = np.asarray(action, dtype=np.float64)
@@ -291,7 +303,7 @@ class RaceEnv(gym.Env):
         mr = self._max_rate
         rate_cmd = (u[1] * mr[0], u[2] * mr[1], u[3] * mr[2])
         sim, dt = self.sim, self.dt
-        wrench, step_raw, contact = self.quad.world_wrench, sim.step_raw, sim.contact
+        wrench, step_raw, contact = self.quad.world_wrench, sim.step_raw, self.collision.contact
         gates = self.scene.gates
         (lx, ly, lz), (hx, hy, hz) = self._arena
         raw: RawState = sim.raw_state
@@ -300,12 +312,13 @@ class RaceEnv(gym.Env):
         crash = None
         for _ in range(self.substeps):
             pos, quat, vel, ang = raw
-            # Rate loop, motors and drag (compiled), then PyBullet integrates and reports contacts.
+            # Rate loop, motors and drag (compiled), then PyBullet integrates; the drone has no collision
+            # response there: any touch along this substep's path is a crash (racebench.collision).
             force, torque = wrench(quat, vel, ang, thrust_cmd, rate_cmd, dt)
             raw = step_raw(force, torque, pos)
             self.ticks += 1
             new_pos = raw[0]
-            crash = contact()
+            crash = contact(pos, new_pos)
             if crash is None:
                 px, py, pz = new_pos
                 if not (lx <= px <= hx and ly <= py <= hy and lz <= pz <= hz):
@@ -480,10 +493,43 @@ class RaceEnv(gym.Env):
         return np.asarray(rgba, dtype=np.uint8).reshape(240, 320, 4)[:, :, :3].copy()
 
     def close(self) -> None:
-        """Release the PyBullet client."""
+        """Release the PyBullet client; the env cannot be used afterwards."""
         if getattr(self, "sim", None) is not None:
             self.sim.close()
             self.sim = None
+        self._closed = True
+
+    def _require_open(self, what: str) -> None:
+        if getattr(self, "_closed", False):
+            raise RuntimeError(f"RaceEnv.{what}() after close(): make a new env with gym.make")
+
+    # A RaceEnv owns a PyBullet client, which cannot be copied: a copied env would drive the original's
+    # world. Copying and pickling are refused with a way to get an equivalent env instead.
+    _NO_COPY = (
+        "a RaceEnv cannot be copied or pickled: it owns a PyBullet client that a copy would share. Make a new "
+        "env with gym.make(env.spec) (or RaceEnv(**kwargs)) and, for the same scene, "
+        "new_env.reset(options={'scene': env.unwrapped.scene}); vector envs pickle env factories, not envs"
+    )
+
+    def __getstate__(self) -> Any:
+        """Refuse pickling (see :attr:`_NO_COPY`)."""
+        raise TypeError(self._NO_COPY)
+
+    def __deepcopy__(self, memo: dict) -> Any:
+        """Refuse deep copies (see :attr:`_NO_COPY`)."""
+        raise TypeError(self._NO_COPY)
+
+    def __copy__(self) -> Any:
+        """Refuse shallow copies (see :attr:`_NO_COPY`)."""
+        raise TypeError(self._NO_COPY)
+
+
+def _check_number(name: str, value: Any, unit: str, positive: bool) -> None:
+    """Raise a ValueError naming ``name`` unless ``value`` is a finite real number (> 0 or >= 0)."""
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    if not (ok and math.isfinite(value) and (value > 0 if positive else value >= 0)):
+        bound = "> 0" if positive else ">= 0"
+        raise ValueError(f"{name} must be a finite number {bound}{' ' + unit if unit else ''}, got {value!r}")
 
 
 @njit(cache=True, error_model="numpy")  # numpy's division semantics (x / 0 = inf), as the array version had

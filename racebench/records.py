@@ -30,6 +30,7 @@ import json
 import math
 import os
 import platform
+import re
 import subprocess
 import tempfile
 from importlib import metadata
@@ -40,7 +41,8 @@ RECORD_FORMAT = 2
 SEED_SETS: tuple[str, ...] = ("public",)
 MAX_PUBLIC_EPISODES = 100_000  # public seeds are EVAL_SEED_BASE + i, i < this
 POLICY_KINDS: tuple[str, ...] = ("builtin", "sb3", "onnx", "python")
-ENV_CRASH_REASONS: tuple[str, ...] = ("gate", "obstacle", "ground", "out_of_bounds")
+#: What an env crash names (racebench.collision): gate i, obstacle j, the ground, or leaving the arena.
+ENV_CRASH_REASON = re.compile(r"^(gate:\d+|obstacle:\d+|ground|out_of_bounds)$")
 ERROR_REASONS: tuple[str, ...] = ("agent_error", "env_error")
 
 # Field name -> accepted Python types (after json.loads). ``None`` allowed where listed.
@@ -256,11 +258,11 @@ def validate_record(record: Any, file_name: str | None = None) -> dict[str, Any]
             if reason not in ERROR_REASONS:
                 raise bad(f"error recorded with crash_reason {reason!r}")
         elif record["crashed"]:
-            if reason not in ENV_CRASH_REASONS:
-                raise bad(f"crash with crash_reason {reason!r} (expected one of {ENV_CRASH_REASONS})")
+            if not (isinstance(reason, str) and ENV_CRASH_REASON.match(reason)):
+                raise bad(f"crash with crash_reason {reason!r} (not gate:<i>, obstacle:<j>, ground, out_of_bounds)")
         elif reason is not None or steps != facts["max_steps"]:
             raise bad(f"neither success, crash nor error, yet stopped after {steps} of {facts['max_steps']} steps")
-    if not record["crashed"] and reason in ENV_CRASH_REASONS:
+    if not record["crashed"] and isinstance(reason, str) and ENV_CRASH_REASON.match(reason):
         raise bad(f"crash_reason {reason!r} without crashed")
     if reason in ERROR_REASONS and not error:
         raise bad(f"crash_reason {reason!r} without an error message")

@@ -16,7 +16,9 @@ import gymnasium as gym
 #: Version of the environments' outcomes. Before racebench 1.0 the ids stay ``-v0``; every evaluation record
 #: carries this number instead, and any change that can change an episode's outcome (physics, collision or gate
 #: logic, scene generation, time limits) bumps it, so results of different versions are never mixed.
-ENV_VERSION = 1
+#: History: 1 = first release; 2 = every touch is a crash (exact swept-sphere geometry, no Bullet bounce) and a
+#: gate crossed on a substep that touched its frame is not passed.
+ENV_VERSION = 2
 
 TRACK_IDS: dict[str, str] = {"S": "S", "J": "J", "Circle": "Circle"}
 DENSITIES: tuple[int, ...] = (2, 3, 4, 5)

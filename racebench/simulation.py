@@ -4,7 +4,7 @@ One ``BulletClient`` (``p.DIRECT``) per environment. The world is built once; a 
 loaded by moving bodies with ``resetBasePositionAndOrientation``. Obstacle bodies are pooled by shape
 (the obstacle generator quantises sizes), unused ones are parked far below the arena.
 
-The per-physics-step path (:meth:`Simulation.step_raw`, :meth:`Simulation.contact`) calls the ``pybullet``
+The per-physics-step path (:meth:`Simulation.step_raw`) calls the ``pybullet``
 functions directly with the client id and plain tuples: ``BulletClient.__getattr__`` builds a
 ``functools.partial`` on every call, and numpy arrays of 3 or 4 numbers cost more to make and convert than
 the arithmetic on them.
@@ -129,8 +129,10 @@ class Simulation:
         c.changeDynamics(
             self.drone, -1, localInertiaDiagonal=list(params.inertia), linearDamping=0.0, angularDamping=0.0
         )
+        # No collision response for the drone: Bullet resolves hits at a small positive distance and lets the
+        # drone bounce on; every touch is decided from the scene's exact geometry instead (racebench.collision).
+        c.setCollisionFilterGroupMask(self.drone, -1, 0, 0)
         self.gates = [self._build_gate(g) for g in track.gates]
-        self.body_kind: dict[int, str] = {self.ground: "ground", **{g: "gate" for g in self.gates}}
         self._pool: dict[tuple, list[int]] = {}
         self._active: list[int] = []
         self._cid = c._client  # the raw client id, for direct pybullet calls on the hot path
@@ -170,7 +172,6 @@ class Simulation:
                 basePosition=[0.0, 0.0, _PARK_Z],
                 useMaximalCoordinates=True,
             )
-            self.body_kind[body] = "obstacle"
             pool.append(body)
         return pool[index]
 
@@ -234,13 +235,6 @@ class Simulation:
     def step(self, force_world: np.ndarray, torque_world: np.ndarray, position: np.ndarray) -> None:
         """Apply a world-frame force at the centre of mass and a world-frame torque, then step once."""
         self.step_raw(tuple(force_world.tolist()), tuple(torque_world.tolist()), tuple(position.tolist()))
-
-    def contact(self) -> str | None:
-        """What the drone touches now (``"gate"``, ``"obstacle"``, ``"ground"``), or ``None``."""
-        for point in p.getContactPoints(self.drone, physicsClientId=self._cid):
-            if point[8] <= 0.0:  # contactDistance: Bullet also reports near-misses within its margin
-                return self.body_kind.get(point[2], "obstacle")
-        return None
 
     def close(self) -> None:
         """Disconnect the PyBullet client."""

@@ -240,6 +240,15 @@ def parse_track(data: Any, source: str = "<track>") -> Track:
                 f"{where}.center",
                 f"gate frame reaches below the ground (z={center[2]} < outer/2={outer / 2})",
             )
+        for j, other in enumerate(gates):
+            # Closer than a frame's side, two frames overlap or leave no room to fly between them.
+            gap = float(np.linalg.norm(center - other.center))
+            if gap < outer:
+                raise _fail(
+                    source,
+                    f"{where}.center",
+                    f"gate {i} is {gap:.3g} m from gate {j}: gate centres must be at least outer={outer} m apart",
+                )
         gates.append(Gate(center=center, yaw=yaw, inner=inner, outer=outer, depth=depth))
 
     raw_start = _require(data, "start", source, "")

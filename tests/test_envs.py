@@ -197,3 +197,45 @@ def test_user_track_file(tmp_path) -> None:
     env.reset(seed=0)
     assert env.unwrapped.track.name == "mine"
     env.close()
+
+
+# ------------------------------------------------------- copies and bad values
+
+
+def test_copies_and_pickles_are_refused_with_a_way_out() -> None:
+    import copy
+
+    env = gym.make("RaceObs-S-v0")
+    env.reset(seed=0)
+    for attempt in (copy.deepcopy, pickle.dumps):
+        with pytest.raises(TypeError, match="cannot be copied or pickled"):
+            attempt(env)
+    import cloudpickle
+
+    with pytest.raises(TypeError, match="cannot be copied or pickled"):
+        cloudpickle.dumps(env)
+    env.step(env.action_space.sample())  # the original is untouched by the attempts
+    env.close()
+    with pytest.raises(RuntimeError, match=r"step\(\) after close\(\)"):
+        env.unwrapped.step(env.action_space.sample())
+    with pytest.raises(RuntimeError, match=r"reset\(\) after close\(\)"):
+        env.unwrapped.reset(seed=0)
+
+
+@pytest.mark.parametrize(
+    "kwargs, named",
+    [
+        ({"depth_noise_std": float("nan")}, "depth_noise_std"),
+        ({"depth_noise_std": -0.1}, "depth_noise_std"),
+        ({"max_episode_time": float("inf")}, "max_episode_time"),
+        ({"max_episode_time": 0}, "max_episode_time"),
+        ({"desired_speed": float("nan")}, "desired_speed"),
+        ({"gate_shift": -0.5}, "gate_shift"),
+        ({"gate_shift_z": float("inf")}, "gate_shift_z"),
+        ({"track": 123}, "track"),
+        ({"max_episode_time": True}, "max_episode_time"),
+    ],
+)
+def test_bad_values_are_named(kwargs: dict, named: str) -> None:
+    with pytest.raises(ValueError, match=f"^{named} must"):
+        gym.make("RaceObs-S-v0", **kwargs)

@@ -83,7 +83,7 @@ def test_flying_into_a_gate_bar_is_a_gate_crash() -> None:
     # Aim at the left bar of gate 1: y = inner/2 + bar/2 = 0.57.
     env.reset(options={"scene": scene_with_start(env, [1.5, 0.57, 1.0])})
     info = fly_velocity(env, np.array([2.0, 0.0, 0.0]), 2.0)
-    assert info["crashed"] and info["crash_reason"] == "gate" and info["gates_passed"] == 0
+    assert info["crashed"] and info["crash_reason"] == "gate:0" and info["gates_passed"] == 0
     assert info["reward_terms"]["crash"] == -4.0
 
 
@@ -97,7 +97,7 @@ def test_flying_into_an_obstacle_is_an_obstacle_crash() -> None:
     scene = dataclasses.replace(env.scene, start_position=start, start_yaw=0.0)
     env.reset(options={"scene": scene})
     info = fly_velocity(env, np.array([2.0, 0.0, 0.0]), 1.5)
-    assert info["crash_reason"] == "obstacle"
+    assert info["crash_reason"] == "obstacle:0"
 
 
 def test_time_limit_truncates() -> None:

@@ -158,7 +158,7 @@ def test_a_fresh_record_is_valid(planner_record: dict) -> None:
 FORGERIES = {
     "success without every gate": {"gates_passed": 3},
     "lap time outside the last step": {"lap_time": 1.23},
-    "success with a crash": {"crashed": True, "crash_reason": "obstacle"},
+    "success with a crash": {"crashed": True, "crash_reason": "obstacle:0"},
     "failure with a lap time": {"success": False},
     "failure that stopped early": {"success": False, "lap_time": None},
     "crash without a reason": {"success": False, "lap_time": None, "crashed": True},

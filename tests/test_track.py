@@ -64,6 +64,11 @@ def _base() -> dict:
         (lambda d: d["gate_size"].update(outer=0.9), "gate_size.outer"),
         (lambda d: d["obstacle_regions"][0].update(between=[0, 9]), "obstacle_regions[0].between"),
         (lambda d: d.update(colour="red"), "colour"),
+        (lambda d: d["gates"].append(dict(d["gates"][0])), "gates[4].center"),  # a duplicate gate
+        (
+            lambda d: d["gates"][1].update(center=[d["gates"][0]["center"][0] + 0.3, *d["gates"][0]["center"][1:]]),
+            "gates[1].center",
+        ),  # fmt: skip
     ],
 )
 def test_malformed_track_names_file_and_field(tmp_path: Path, mutate, field: str) -> None:
