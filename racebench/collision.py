@@ -50,12 +50,10 @@ class CollisionChecker:
         if not (math.isfinite(tolerance) and tolerance >= 0.0):
             raise ValueError(f"tolerance must be finite and >= 0, got {tolerance!r}")
         centre, half, yaw, rounding = scene.primitive_arrays
-        self._tables = (
-            np.ascontiguousarray(centre),
-            np.ascontiguousarray(half),
-            np.cos(yaw),
-            np.sin(yaw),
-            np.ascontiguousarray(rounding),
+        # One (K, 9) table (centre, half extents, cos yaw, sin yaw, rounding): a single array argument keeps
+        # the compiled call's dispatch cost low, which matters at every physics substep.
+        self._table = np.ascontiguousarray(
+            np.column_stack([centre, half, np.cos(yaw), np.sin(yaw), rounding]).reshape(-1, 9)
         )
         self.radius = float(radius)
         self.tolerance = float(tolerance)
@@ -65,41 +63,36 @@ class CollisionChecker:
         names = [f"gate:{i}" for i in range(len(scene.gates)) for _ in range(4)]
         names += [f"obstacle:{j}" for j, o in enumerate(scene.obstacles) if o.kind == "box"]
         names += [f"obstacle:{j}" for j, o in enumerate(scene.obstacles) if o.kind == "cylinder"]
-        if len(names) != len(rounding):
+        if len(names) != len(self._table):
             raise AssertionError("scene primitives and their owners disagree")
         self.owners = names
 
     def contact(self, p0: tuple[float, float, float], p1: tuple[float, float, float]) -> str | None:
         """What the sphere swept from ``p0`` to ``p1`` touches first (``"gate:2"``, ``"ground"``, ...), or ``None``."""
-        hit = _swept_contact(
-            float(p0[0]), float(p0[1]), float(p0[2]), float(p1[0]), float(p1[1]), float(p1[2]),
-            self.threshold, SWEEP_RESOLUTION, *self._tables,
-        )  # fmt: skip
+        hit = _swept_contact(p0[0], p0[1], p0[2], p1[0], p1[1], p1[2], self.threshold, SWEEP_RESOLUTION, self._table)
         if hit == _CLEAR:
             return None
         return "ground" if hit == _GROUND else self.owners[hit]
 
     def clearance(self, point: tuple[float, float, float]) -> float:
         """Gap between the sphere at ``point`` and the nearest surface, ground included (negative: overlap)."""
-        d, _ = _nearest(float(point[0]), float(point[1]), float(point[2]), *self._tables)
+        d, _ = _nearest(float(point[0]), float(point[1]), float(point[2]), self._table)
         return d - self.radius
 
 
 @njit(cache=True)
-def _nearest(
-    x: float, y: float, z: float, centre: np.ndarray, half: np.ndarray, cos: np.ndarray, sin: np.ndarray,
-    rounding: np.ndarray,
-) -> tuple[float, int]:  # fmt: skip
+def _nearest(x: float, y: float, z: float, table: np.ndarray) -> tuple[float, int]:
     """Distance from a point to the nearest surface (ground plane included) and which one (-1: ground)."""
     ground = max(z, 0.0)
     best = ground * ground
     which = _GROUND
-    for k in range(len(rounding)):
-        lx = abs(cos[k] * (x - centre[k, 0]) + sin[k] * (y - centre[k, 1])) - half[k, 0]
-        ly = abs(-sin[k] * (x - centre[k, 0]) + cos[k] * (y - centre[k, 1])) - half[k, 1]
-        lz = abs(z - centre[k, 2]) - half[k, 2]
+    for k in range(table.shape[0]):
+        cx, cy, cz, hx, hy, hz, cos, sin, rounding = table[k]
+        lx = abs(cos * (x - cx) + sin * (y - cy)) - hx
+        ly = abs(-sin * (x - cx) + cos * (y - cy)) - hy
+        lz = abs(z - cz) - hz
         lx, ly, lz = max(lx, 0.0), max(ly, 0.0), max(lz, 0.0)
-        horizontal = max(math.sqrt(lx * lx + ly * ly) - rounding[k], 0.0)
+        horizontal = max(math.sqrt(lx * lx + ly * ly) - rounding, 0.0)
         d2 = horizontal * horizontal + lz * lz
         if d2 < best:
             best = d2
@@ -110,13 +103,13 @@ def _nearest(
 @njit(cache=True)
 def _swept_contact(
     x0: float, y0: float, z0: float, x1: float, y1: float, z1: float, threshold: float, resolution: float,
-    centre: np.ndarray, half: np.ndarray, cos: np.ndarray, sin: np.ndarray, rounding: np.ndarray,
+    table: np.ndarray,
 ) -> int:  # fmt: skip
     """First primitive (-1: ground) the swept sphere touches along ``p0 → p1``, or -2 (clear)."""
-    d0, k0 = _nearest(x0, y0, z0, centre, half, cos, sin, rounding)
+    d0, k0 = _nearest(x0, y0, z0, table)
     if d0 <= threshold:
         return k0
-    d1, k1 = _nearest(x1, y1, z1, centre, half, cos, sin, rounding)
+    d1, k1 = _nearest(x1, y1, z1, table)
     dx, dy, dz = x1 - x0, y1 - y0, z1 - z0
     length = math.sqrt(dx * dx + dy * dy + dz * dz)
     # Depth-first over pieces [t_a, t_b] of the segment, left piece first: the first touch along the path.
@@ -139,7 +132,7 @@ def _swept_contact(
         if piece <= resolution or top >= 62:
             return ka if da <= db else kb
         tm = 0.5 * (ta + tb)
-        dm, km = _nearest(x0 + dx * tm, y0 + dy * tm, z0 + dz * tm, centre, half, cos, sin, rounding)
+        dm, km = _nearest(x0 + dx * tm, y0 + dy * tm, z0 + dz * tm, table)
         if dm <= threshold:
             # The left piece may touch earlier: search it first, else this midpoint is the first touch.
             if 0.5 * (da + dm - (tm - ta) * length) > threshold:
