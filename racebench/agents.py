@@ -268,6 +268,47 @@ class SB3Agent:
         self.state = None
         self.episode_start = np.ones((1,), dtype=bool)
 
+    def start(self, slots: int) -> None:
+        """Prepare ``slots`` parallel episodes for :meth:`act_batch` (lockstep evaluation)."""
+        import torch
+
+        policy = self.model.policy
+        policy.set_training_mode(False)  # once here, not per call as ``predict`` does
+        self.batch_starts = np.ones((slots,), dtype=np.float32)
+        self.batch_state: Any = None
+        if self.recurrent:
+            zeros = torch.zeros((policy.lstm_hidden_state_shape[0], slots, policy.lstm_hidden_state_shape[2]))
+            self.batch_state = (zeros, zeros.clone())
+
+    def reset_slot(self, slot: int) -> None:
+        """A new episode in ``slot``: its recurrent state is cleared at the next call."""
+        self.batch_starts[slot] = 1.0
+
+    def act_batch(self, observations: list[Any]) -> np.ndarray:
+        """Deterministic actions ``(slots, 4)`` for one observation per slot, in one forward pass.
+
+        The same computation as ``model.predict`` on the stacked batch (tested), without its per-call
+        overhead (mode switches, state conversions between numpy and torch), which at batch 16 cost as
+        much as the network itself.
+        """
+        import torch
+
+        policy = self.model.policy
+        obs, _ = policy.obs_to_tensor(_stack(observations, self.obs_mode))
+        with torch.inference_mode():
+            if self.recurrent:
+                starts = torch.from_numpy(self.batch_starts)
+                actions, self.batch_state = policy._predict(
+                    obs, lstm_states=self.batch_state, episode_starts=starts, deterministic=True
+                )
+                self.batch_starts[:] = 0.0
+            else:
+                actions = policy._predict(obs, deterministic=True)
+        actions = actions.cpu().numpy().reshape((-1, *self.model.action_space.shape))
+        if policy.squash_output:
+            return policy.unscale_action(actions)
+        return np.clip(actions, self.model.action_space.low, self.model.action_space.high)
+
     def act(self, obs: Any) -> np.ndarray:
         """Deterministic action of the policy."""
         if self.recurrent:
@@ -313,6 +354,26 @@ class OnnxAgent:
         """Zero the hidden state of a recurrent policy."""
         self.hidden = None if self.hidden_size is None else np.zeros((1, self.hidden_size), dtype=np.float32)
 
+    def start(self, slots: int) -> None:
+        """Prepare ``slots`` parallel episodes for :meth:`act_batch` (lockstep evaluation)."""
+        self.batch_hidden = None if self.hidden_size is None else np.zeros((slots, self.hidden_size), np.float32)
+
+    def reset_slot(self, slot: int) -> None:
+        """A new episode in ``slot``: zero its hidden state."""
+        if self.batch_hidden is not None:
+            self.batch_hidden[slot] = 0.0
+
+    def act_batch(self, observations: list[Any]) -> np.ndarray:
+        """Actions ``(slots, 4)`` for one observation per slot, in one run of the graph."""
+        obs = _stack(observations, self.obs_mode)
+        feed = dict(obs) if self.obs_mode == "vision" else {"state": obs}
+        if self.batch_hidden is not None:
+            feed["hidden"] = self.batch_hidden
+        outputs = self.session.run(None, feed)
+        if self.batch_hidden is not None:
+            self.batch_hidden = outputs[1]
+        return outputs[0]
+
     def act(self, obs: Any) -> np.ndarray:
         """Run the graph on one observation."""
         if self.obs_mode == "vision":
@@ -325,6 +386,16 @@ class OnnxAgent:
         if self.hidden is not None:
             self.hidden = outputs[1]
         return outputs[0][0]
+
+
+def _stack(observations: list[Any], obs_mode: str) -> Any:
+    """One batch from per-episode observations: a dict of stacked float32 arrays (vision) or an array."""
+    if obs_mode == "vision":
+        return {
+            "state": np.stack([o["state"] for o in observations]).astype(np.float32, copy=False),
+            "depth": np.stack([o["depth"] for o in observations]).astype(np.float32, copy=False),
+        }
+    return np.stack([np.asarray(o, dtype=np.float32) for o in observations])
 
 
 def export_onnx(model: Any, path: str | Path) -> Path:

@@ -10,7 +10,10 @@ One run measures, on this machine:
   :class:`~racebench.vector.RaceVectorEnv` (ray caster) in one process and over two worker processes;
 * training samples/s end to end (rollout + PPO update) of the ``state-ppo`` and ``vision-ppo`` baselines as
   configured, ``vision-ppo`` with either depth renderer (their ratio), and the share spent in the update;
-* the cost of each part of a step (physics substep, state observation, depth render, depth noise);
+* evaluation steps/s of the committed ``vision-ppo`` checkpoint (either renderer) and ``state-ppo`` flown in
+  lockstep, against the same episodes' actions replayed in one env alone (their ratio), and the policy call
+  at batch 1 and 16 on one and two torch threads;
+* the cost of each part of a step (physics substep, collision check, state observation, depth render, noise);
 * the CPU time per env step of each vector-env run, summed over its processes (unlike steps/s, not
   lowered by other processes sharing the cores);
 * peak resident memory of this process and of the worker processes;
@@ -59,6 +62,8 @@ class BenchSettings:
     vector_steps: int = 150  # vector steps (each steps every env) per measurement
     train_updates: int = 3  # timed PPO updates (rollout + update) of each training measurement, after one warm-up
     train_small: bool = False  # shrink the training configs to 4 envs x 16 steps (smoke test)
+    eval_episodes: int = 32  # episodes of each evaluation measurement
+    eval_batch: int = 16  # lockstep width of the evaluation measurements
     seed: int = 0
 
     @classmethod
@@ -72,6 +77,8 @@ class BenchSettings:
             vector_steps=25,
             train_updates=1,
             train_small=True,
+            eval_episodes=4,
+            eval_batch=4,
         )
 
 
@@ -308,6 +315,122 @@ def _bench_training(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
     return rates
 
 
+EVAL_CHECKPOINTS: dict[str, str] = {
+    "vision": "baselines/checkpoints/vision-ppo-S/vision-ppo-S.zip",
+    "state": "baselines/checkpoints/state-ppo-S/state-ppo-S.zip",
+}
+
+
+def _checkpoint(name: str) -> Path | None:
+    """A committed checkpoint, found beside the installed package (a source checkout), else ``None``."""
+    path = Path(__file__).resolve().parents[1] / EVAL_CHECKPOINTS[name]
+    return path if path.is_file() else None
+
+
+class _ActionLog:
+    """Env factory for a lockstep evaluation that logs every action per seed (to replay them alone)."""
+
+    def __init__(self, obs_mode: str, renderer: str) -> None:
+        self.obs_mode, self.renderer = obs_mode, renderer
+        self.clear()
+
+    def clear(self) -> None:
+        """Forget what was logged."""
+        self.actions: dict[int, list[np.ndarray]] = {}
+        self.steps = 0
+
+    def done(self, env_id: str, seed: int, result: dict[str, Any], flown: Any) -> None:
+        """Count the episode's steps."""
+        self.steps += result["steps"]
+
+    def make_env(self, env_id: str) -> Any:
+        """A ``gym.make`` env whose ``reset_state``/``advance`` log the seed and the actions."""
+        import gymnasium as gym
+
+        env = gym.make(env_id, obs_mode=self.obs_mode, renderer=self.renderer)
+        raw = env.unwrapped
+        reset_state, advance = raw.reset_state, raw.advance
+        current: list[int] = []
+
+        def logged_reset(*, seed: int | None = None, options: Any = None) -> dict:
+            current[:] = [seed]
+            self.actions[seed] = []
+            return reset_state(seed=seed, options=options)
+
+        def logged_advance(action: np.ndarray) -> tuple:
+            self.actions[current[0]].append(np.array(action))
+            return advance(action)
+
+        raw.reset_state, raw.advance = logged_reset, logged_advance
+        return env
+
+
+def _bench_evaluation(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
+    """Evaluation of the committed checkpoints in lockstep (one process) against the same env stepped alone.
+
+    The lockstep run records every action; "env alone" replays exactly those actions, open loop, in one env:
+    the same episodes, so the same simulator work, without the policy. Their ratio is the evaluation's
+    efficiency. Also the policy call itself at batch 1 and 16 on one and two torch threads (the evaluator
+    runs one thread per process: :func:`racebench.evaluation.torch_threads`).
+    """
+    import gymnasium as gym
+    import torch
+
+    from racebench.agents import load_agent
+    from racebench.evaluation import EVAL_SEED_BASE, SingleTorchThread
+    from racebench.rollout import run_lockstep
+
+    ratios: dict[str, float] = {}
+    env_id, episodes, width = f"RaceObs-{s.track}-v0", s.eval_episodes, s.eval_batch
+    for kind, renderers in (("vision", ("pybullet", "raycast")), ("state", ("pybullet",))):
+        path = _checkpoint(kind)
+        if path is None:
+            rec.echo(f"  (no committed {kind} checkpoint beside this install: evaluation rows skipped)")
+            continue
+        agent = load_agent(str(path))
+        for renderer in renderers:
+            log = _ActionLog(agent.obs_mode, renderer)
+            jobs = [(env_id, EVAL_SEED_BASE + i) for i in range(episodes)]
+            run_lockstep(agent, jobs[:2], log.make_env, log.done, width=width)  # warm-up
+            log.clear()
+            with SingleTorchThread():
+                start = time.perf_counter()
+                run_lockstep(agent, jobs, log.make_env, log.done, width=width)
+                lockstep = log.steps / (time.perf_counter() - start)
+            actions = log.actions
+            env = gym.make(env_id, obs_mode=agent.obs_mode, renderer=renderer)
+            start = time.perf_counter()
+            for seed, taken in actions.items():
+                env.reset(seed=seed)
+                for action in taken:
+                    env.step(action)
+            alone = sum(len(a) for a in actions.values()) / (time.perf_counter() - start)
+            env.close()
+            label = f"{path.stem}, {renderer} depth" if kind == "vision" else path.stem
+            rec.add("evaluation", f"env alone, {label} episodes replayed", alone, "steps/s", f"{episodes} episodes")
+            rec.add("evaluation", f"evaluation of {label}, lockstep {width}", lockstep, "steps/s", "1 process")
+            ratios[label] = rec.add("evaluation", f"ratio evaluation / env alone, {label}", lockstep / alone, "x",
+                                    "target >= 0.7")  # fmt: skip
+        if kind == "vision":
+            threads = torch.get_num_threads()
+            probe = gym.make(env_id, obs_mode="vision", renderer="raycast")
+            obs, _ = probe.reset(seed=EVAL_SEED_BASE)
+            probe.close()
+            for batch in (1, 16):
+                for n_threads in (1, 2):
+                    torch.set_num_threads(n_threads)
+                    agent.start(batch)
+                    agent.act_batch([obs] * batch)
+                    reps = max(20, s.single_steps // 30)
+                    start = time.perf_counter()
+                    for _ in range(reps):
+                        agent.act_batch([obs] * batch)
+                    per_call = (time.perf_counter() - start) / reps * 1e3
+                    rec.add("evaluation", f"policy call, batch {batch}, {n_threads} torch thread(s)", per_call, "ms")
+            torch.set_num_threads(threads)
+    return ratios
+
+
 def _cpu_seconds(pid: int) -> float:
     """User + system CPU time (s) so far of process ``pid`` (Linux ``/proc``; this process anywhere)."""
     if pid == os.getpid():
@@ -406,6 +529,8 @@ def run_benchmark(
     for obs_mode in ("state", "vision"):
         for processes in (1, 2):
             vector[obs_mode, processes] = _bench_vector(rec, s, obs_mode, processes, peaks)
+    echo("evaluation of the committed checkpoints (steps/s, same episodes):")
+    _bench_evaluation(rec, s)
     echo("training (env + PPO update, end to end):")
     training = _bench_training(rec, s)
     echo("parts of a step (µs per call):")

@@ -22,7 +22,6 @@ summaries from the records too and never read a ``summary.csv`` back.
 
 from __future__ import annotations
 
-import atexit
 import json
 import logging
 import multiprocessing
@@ -31,9 +30,9 @@ import re
 import shutil
 import sys
 import time
-import traceback
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -43,9 +42,10 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 import racebench
-from racebench.agents import Agent, PolicyIdentity, load_agent, policy_identity
+from racebench.agents import PolicyIdentity, load_agent, policy_identity
 from racebench.records import (
     RECORD_FIELDS,
+    RECORD_FORMAT,
     InvalidRecordError,
     atomic_write,
     git_state,
@@ -55,6 +55,7 @@ from racebench.records import (
     seal,
 )
 from racebench.registration import DENSITIES, ENV_VERSION, GATE_SHIFTS
+from racebench.rollout import BatchAgent, env_error_result, run_episode, run_lockstep
 from racebench.statistics import wilson_interval
 
 logger = logging.getLogger("racebench")
@@ -69,6 +70,7 @@ SUITES: dict[str, list[str]] = {
 }
 SUITES["paper"] = SUITES["main"] + SUITES["density"] + SUITES["gates"]
 SEED_SET = "public"
+DEFAULT_BATCH = 16  # episodes flown in lockstep per process (learned agents)
 EPISODE_COLUMNS: tuple[str, ...] = RECORD_FIELDS  # episodes.csv: every record field
 _ID = re.compile(r"^RaceObs-(?P<track>[^-]+)(?:-(?P<variant>.+))?-v0$")
 
@@ -98,99 +100,106 @@ def split_env_id(env_id: str) -> tuple[str, str]:
     return match["track"], match["variant"] or "default"
 
 
-def _agent_error(obs_action: Any) -> tuple[np.ndarray | None, str | None]:
-    try:
-        action = np.asarray(obs_action, dtype=np.float64).reshape(-1) if obs_action is not None else None
-    except (TypeError, ValueError) as exc:
-        return None, f"action is not numeric: {exc}"
-    if action is None:
-        return None, "agent returned None"
-    if action.shape != (4,):
-        return None, f"action has shape {np.shape(obs_action)}, expected (4,)"
-    if not np.all(np.isfinite(action)):
-        return None, f"action is not finite: {action.tolist()}"
-    return action.astype(np.float32), None
+@dataclass(frozen=True)
+class RecordWriter:
+    """Writes the record (and trajectory) of each finished episode of one evaluation; picklable, so worker
+    processes write their own records as episodes end (a killed run loses only the episodes in flight)."""
+
+    out_dir: Path
+    identity: PolicyIdentity
+    agent_name: str
+    renderer: str
+
+    def name(self, env_id: str, seed: int) -> str:
+        """File name of the record of ``(env_id, seed)``."""
+        return record_name(self.identity.sha256, env_id, ENV_VERSION, SEED_PROTOCOL, SEED_SET, seed, self.renderer)
+
+    def write(self, env_id: str, seed: int, result: dict[str, Any], flown: dict | None) -> str:
+        """Seal and atomically write one episode's record; return its file name."""
+        track, variant = split_env_id(env_id)
+        commit, dirty = git_state()
+        record = seal(
+            {
+                "record_format": RECORD_FORMAT,
+                "agent": self.agent_name,
+                "policy_kind": self.identity.kind,
+                "policy_sha256": self.identity.sha256,
+                "policy_source": self.identity.source,
+                "privileged": self.identity.privileged,
+                "env_id": env_id,
+                "track": track,
+                "variant": variant,
+                "env_version": ENV_VERSION,
+                "renderer": self.renderer,
+                "seed": seed,
+                "seed_protocol": SEED_PROTOCOL,
+                "seed_set": SEED_SET,
+                **result,
+                "racebench_version": racebench.__version__,
+                "git_commit": commit,
+                "git_dirty": dirty,
+                **host_info(),
+            }
+        )
+        name = self.name(env_id, seed)
+        if flown is not None:
+            traj_dir = self.out_dir / "trajectories"
+            traj_dir.mkdir(parents=True, exist_ok=True)
+            tmp = traj_dir / f".{name}.tmp.npz"
+            scene = json.dumps(flown["scene"])
+            np.savez_compressed(tmp, positions=flown["positions"], scene=scene, row=json.dumps(record))
+            os.chmod(tmp, 0o644)
+            os.replace(tmp, traj_dir / name.replace(".json", ".npz"))
+        atomic_write(self.out_dir / "records" / name, json.dumps(record, indent=1))
+        return name
 
 
-def run_episode(agent: Agent, env: gym.Env, seed: int, trajectory: list | None = None) -> dict[str, Any]:
-    """Fly one episode; never raises because of the agent (its failures become the episode's outcome)."""
-    obs, info = env.reset(seed=seed)
-    unwrapped = env.unwrapped
-    total, steps, error = 0.0, 0, None
-    terminated = truncated = False
-    try:
-        agent.reset(env=unwrapped if agent.privileged else None, seed=seed)
-    except Exception as exc:  # noqa: BLE001 - an agent failure is a result, not a crash of the sweep
-        error = f"reset raised {type(exc).__name__}: {exc}"
-    if trajectory is not None:
-        trajectory.append(unwrapped.drone.position.copy())
-    while error is None and not (terminated or truncated):
-        try:
-            raw = agent.act(obs)
-        except Exception as exc:  # noqa: BLE001
-            error = f"act raised {type(exc).__name__}: {exc}"
-            break
-        action, error = _agent_error(raw)
-        if error:
-            break
-        obs, reward, terminated, truncated, info = env.step(action)
-        total += float(reward)
-        steps += 1
-        if trajectory is not None:
-            trajectory.append(unwrapped.drone.position.copy())
-    return {
-        "success": bool(info["is_success"]) and error is None,
-        "lap_time": info["lap_time"] if error is None else None,
-        "crashed": bool(info["crashed"]),
-        "crash_reason": "agent_error" if error else info["crash_reason"],
-        "gates_passed": int(info["gates_passed"]),
-        "return": total,
-        "steps": steps,
-        "error": error,
-    }
-
-
-# Worker-process state: one agent and one env per id, built once per process.
+# Worker-process state: one agent, built once per process, and its settings.
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(agent_spec: str, env_kwargs: dict[str, Any], trust_code: bool) -> None:
-    _close_worker_envs()
-    _WORKER.update(agent=load_agent(agent_spec, trust_code=trust_code), envs={}, env_kwargs=env_kwargs)
+def _worker_init(agent_spec: str, renderer: str, trust_code: bool, threads: int) -> None:
+    import torch  # only learned agents need it, and they import it anyway
+
+    torch.set_num_threads(threads)
+    _WORKER.update(agent=load_agent(agent_spec, trust_code=trust_code), renderer=renderer)
 
 
-def _close_worker_envs() -> None:
-    """Close this process's evaluation envs (PyBullet clients left to interpreter shutdown print errors)."""
-    for env in _WORKER.get("envs", {}).values():
-        env.close()
-    _WORKER["envs"] = {}
+def _fly(jobs: list[tuple[str, int]], writer: RecordWriter, width: int, save_trajectories: bool) -> list[str]:
+    """Fly ``jobs`` with this process's agent, writing each record as its episode ends; return the names.
 
-
-def _pool_worker_init(agent_spec: str, env_kwargs: dict[str, Any], trust_code: bool) -> None:
-    import torch  # here: only learned agents need it, and they have imported it already
-
-    torch.set_num_threads(1)  # one episode at a time per worker, one worker per core
-    atexit.register(_close_worker_envs)
-    _worker_init(agent_spec, env_kwargs, trust_code)
-
-
-def _worker_run(env_id: str, seed: int, save_trajectory: bool) -> tuple[str, int, dict[str, Any], dict | None]:
+    A :class:`~racebench.rollout.BatchAgent` flies ``width`` episodes in lockstep; any other agent one
+    episode at a time.
+    """
     agent = _WORKER["agent"]
-    envs = _WORKER["envs"]
-    if env_id not in envs:
-        envs[env_id] = gym.make(env_id, obs_mode=agent.obs_mode, **_WORKER["env_kwargs"])
-    trajectory: list | None = [] if save_trajectory else None
+    written: list[str] = []
+
+    def make_env(env_id: str) -> gym.Env:
+        return gym.make(env_id, obs_mode=agent.obs_mode, renderer=_WORKER["renderer"])
+
+    def done(env_id: str, seed: int, result: dict[str, Any], flown: dict | None) -> None:
+        written.append(writer.write(env_id, seed, result, flown))
+
+    if width > 1 and isinstance(agent, BatchAgent):
+        run_lockstep(agent, jobs, make_env, done, width=width, save_trajectories=save_trajectories)
+        return written
+    envs: dict[str, gym.Env] = {}
     try:
-        result = run_episode(agent, envs[env_id], seed, trajectory)
-    except Exception:  # noqa: BLE001 - an env-side failure is recorded too, the sweep goes on
-        result = {
-            "success": False, "lap_time": None, "crashed": False, "crash_reason": "env_error",
-            "gates_passed": 0, "return": 0.0, "steps": 0, "error": traceback.format_exc(limit=3),
-        }  # fmt: skip
-    flown = None
-    if trajectory:
-        flown = {"positions": np.array(trajectory), "scene": envs[env_id].unwrapped.scene.to_dict()}
-    return env_id, seed, result, flown
+        for env_id, seed in jobs:
+            env = envs.get(env_id) or envs.setdefault(env_id, make_env(env_id))
+            trajectory: list | None = [] if save_trajectories else None
+            try:
+                result = run_episode(agent, env, seed, trajectory)
+            except Exception:  # noqa: BLE001 - an env-side failure is recorded too, the sweep goes on
+                result = env_error_result()
+            flown = None
+            if trajectory:
+                flown = {"positions": np.array(trajectory), "scene": env.unwrapped.scene.to_dict()}
+            done(env_id, seed, result, flown)
+    finally:
+        for env in envs.values():
+            env.close()
+    return written
 
 
 class MixedResultsError(ValueError):
@@ -203,18 +212,28 @@ def default_out_dir(agent_name: str, identity: PolicyIdentity) -> Path:
     return Path("runs") / "eval" / f"{safe}-{identity.sha256[:10]}"
 
 
+def torch_threads() -> int:
+    """Torch threads for a process that steps envs and runs a policy in turn: one.
+
+    Measured on 2 cores (``racebench bench``, "policy call" rows): the batch-1 call of the vision GRU costs
+    ~1 ms on one thread and 7–70 ms with two (the default) while anything else runs, and a 32-observation
+    batch is no faster on two threads; the simulator between calls cannot use a second thread anyway.
+    """
+    return 1
+
+
 class SingleTorchThread:
-    """Context: run a policy in this process with one torch thread, restored on exit.
+    """Context: run a policy in this process with :func:`torch_threads` threads, restored on exit.
 
     Batch-1 policy calls with torch's default thread count oversubscribe small machines (seen: 15 instead
-    of ~150 env steps/s on 2 cores); with one thread a call costs ~1 ms.
+    of ~150 env steps/s on 2 cores).
     """
 
     def __enter__(self) -> None:
         self.torch = sys.modules.get("torch")
         if self.torch is not None:
             self.saved = self.torch.get_num_threads()
-            self.torch.set_num_threads(1)
+            self.torch.set_num_threads(torch_threads())
 
     def __exit__(self, *exc: Any) -> None:
         if self.torch is not None:
@@ -230,13 +249,15 @@ class Evaluator:
         episodes: episodes per env id (the paper: 10).
         out_dir: where the records, ``episodes.csv`` and ``summary.csv`` go (default
             :func:`default_out_dir`). It may hold the records of this policy only.
-        workers: processes to use (each builds its own agent and envs).
+        workers: processes to use (each builds its own agent and envs, and runs torch on one thread).
         agent_name: label in the CSVs (default: the agent's own name); it never selects records.
         save_trajectories: also store each episode's positions and scene (for the 3D track figure).
-        env_kwargs: extra kwargs for every ``gym.make`` (e.g. ``renderer``); recorded nowhere, so keep
-            them to ones that do not change the task.
+        renderer: depth renderer of the envs (``"pybullet"``, the envs' default, or ``"raycast"``); recorded in
+            every record and part of its key.
         trust_code: allow agents whose loading runs code from a file (see :func:`~racebench.agents.load_agent`).
         force: discard every record already in ``out_dir`` (whatever produced it) and evaluate afresh.
+        batch: episodes a process flies in lockstep with one batched policy call per step (agents that
+            support it: SB3 and ONNX); 1 flies one episode at a time.
     """
 
     def __init__(
@@ -248,20 +269,28 @@ class Evaluator:
         workers: int = 1,
         agent_name: str | None = None,
         save_trajectories: bool = False,
-        env_kwargs: dict[str, Any] | None = None,
+        renderer: str = "pybullet",
         trust_code: bool = False,
         force: bool = False,
+        batch: int = DEFAULT_BATCH,
     ) -> None:
+        from racebench.env import RENDERERS
+
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
+        if batch < 1:
+            raise ValueError(f"batch must be >= 1, got {batch}")
+        if renderer not in RENDERERS:
+            raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
         self.agent_spec = agent_spec
         self.env_ids = resolve_envs(envs)
         self.episodes = episodes
         self.workers = workers
+        self.batch = batch
         self.save_trajectories = save_trajectories
-        self.env_kwargs = env_kwargs or {}
+        self.renderer = renderer
         self.trust_code = trust_code
         probe = load_agent(agent_spec, trust_code=trust_code)  # fail fast, in this process, on a bad spec
         self.identity = policy_identity(agent_spec)
@@ -271,6 +300,7 @@ class Evaluator:
         self.privileged = self.identity.privileged
         self.out_dir = Path(out_dir) if out_dir is not None else default_out_dir(self.agent_name, self.identity)
         self.records_dir = self.out_dir / "records"
+        self.writer = RecordWriter(self.out_dir, self.identity, self.agent_name, renderer)
         if force:
             self._clear()
         self.done = self._scan()
@@ -291,12 +321,13 @@ class Evaluator:
             except InvalidRecordError as exc:
                 self._set_aside(path, str(exc))
                 continue
-            mine = (record["policy_sha256"], record["env_version"], record["seed_set"])
-            if mine != (self.identity.sha256, ENV_VERSION, SEED_SET):
+            theirs = (record["policy_sha256"], record["env_version"], record["seed_set"], record["renderer"])
+            if theirs != (self.identity.sha256, ENV_VERSION, SEED_SET, self.renderer):
                 raise MixedResultsError(
-                    f"{self.out_dir} holds results of another policy or env version ({record['policy_source']!r}, "
-                    f"sha256 {record['policy_sha256'][:12]}, env version {record['env_version']}); this is "
-                    f"{self.identity.source!r}, sha256 {self.identity.sha256[:12]}, env version {ENV_VERSION}: "
+                    f"{self.out_dir} holds results of another policy, env version or renderer "
+                    f"({record['policy_source']!r}, sha256 {record['policy_sha256'][:12]}, env version "
+                    f"{record['env_version']}, {record['renderer']} depth); this is {self.identity.source!r}, "
+                    f"sha256 {self.identity.sha256[:12]}, env version {ENV_VERSION}, {self.renderer} depth: "
                     "choose another --out, or --force to discard them"
                 )
             if record["agent"] != self.agent_name:
@@ -314,54 +345,14 @@ class Evaluator:
         atomic_write(aside / f"{path.name}.reason.txt", reason + "\n")
         logger.warning("racebench: invalid record set aside, its episode will be re-run: %s", reason)
 
-    def _name(self, env_id: str, seed: int) -> str:
-        return record_name(self.identity.sha256, env_id, ENV_VERSION, SEED_PROTOCOL, SEED_SET, seed)
-
     def pending(self) -> list[tuple[str, int]]:
         """(env id, seed) pairs of this evaluation without a valid finished record."""
         return [
             (env_id, seed)
             for env_id in self.env_ids
             for seed in eval_seeds(self.episodes)
-            if self._name(env_id, seed) not in self.done
+            if self.writer.name(env_id, seed) not in self.done
         ]
-
-    def _store(self, env_id: str, seed: int, result: dict[str, Any], flown: dict | None) -> None:
-        track, variant = split_env_id(env_id)
-        commit, dirty = git_state()
-        record = seal(
-            {
-                "record_format": 2,
-                "agent": self.agent_name,
-                "policy_kind": self.identity.kind,
-                "policy_sha256": self.identity.sha256,
-                "policy_source": self.identity.source,
-                "privileged": self.privileged,
-                "env_id": env_id,
-                "track": track,
-                "variant": variant,
-                "env_version": ENV_VERSION,
-                "seed": seed,
-                "seed_protocol": SEED_PROTOCOL,
-                "seed_set": SEED_SET,
-                **result,
-                "racebench_version": racebench.__version__,
-                "git_commit": commit,
-                "git_dirty": dirty,
-                **host_info(),
-            }
-        )
-        name = self._name(env_id, seed)
-        if flown is not None:
-            traj_dir = self.out_dir / "trajectories"
-            traj_dir.mkdir(parents=True, exist_ok=True)
-            tmp = traj_dir / f".{name}.tmp.npz"
-            scene = json.dumps(flown["scene"])
-            np.savez_compressed(tmp, positions=flown["positions"], scene=scene, row=json.dumps(record))
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, traj_dir / name.replace(".json", ".npz"))
-        atomic_write(self.records_dir / name, json.dumps(record, indent=1))
-        self.done.add(name)
 
     # --------------------------------------------------------------------- run
     def run(self, progress: bool = True) -> pd.DataFrame:
@@ -369,26 +360,31 @@ class Evaluator:
         todo = self.pending()
         started = time.perf_counter()
         bar = tqdm(total=len(todo), desc=f"{self.agent_name}", disable=not progress, unit="ep")
-        if self.workers == 1 or len(todo) <= 1:
+        # Tasks of a few lockstep widths: every worker stays busy, and each record is written as it ends.
+        size = max(1, min(2 * self.batch, -(-len(todo) // self.workers)))
+        tasks = [todo[i : i + size] for i in range(0, len(todo), size)]
+        if self.workers == 1 or len(tasks) <= 1:
             with SingleTorchThread():
-                _worker_init(self.agent_spec, self.env_kwargs, self.trust_code)
-                for env_id, seed in todo:
-                    self._store(*_worker_run(env_id, seed, self.save_trajectories))
-                    bar.update()
-                _close_worker_envs()
+                _worker_init(self.agent_spec, self.renderer, self.trust_code, torch_threads())
+                for task in tasks:
+                    self.done.update(_fly(task, self.writer, self.batch, self.save_trajectories))
+                    bar.update(len(task))
         else:
             # "spawn": a forked child of a process that has run torch can deadlock in torch's thread pool
             # (seen: --workers 2 with a GRU checkpoint hung at start).
             with ProcessPoolExecutor(
                 self.workers,
                 mp_context=multiprocessing.get_context("spawn"),
-                initializer=_pool_worker_init,
-                initargs=(self.agent_spec, self.env_kwargs, self.trust_code),
+                initializer=_worker_init,
+                initargs=(self.agent_spec, self.renderer, self.trust_code, 1),
             ) as pool:
-                futures = [pool.submit(_worker_run, env_id, seed, self.save_trajectories) for env_id, seed in todo]
+                futures = {
+                    pool.submit(_fly, task, self.writer, self.batch, self.save_trajectories): len(task)
+                    for task in tasks
+                }
                 for future in as_completed(futures):
-                    self._store(*future.result())
-                    bar.update()
+                    self.done.update(future.result())
+                    bar.update(futures[future])
         bar.close()
         self.elapsed = time.perf_counter() - started
         episodes = write_tables(self.out_dir)

@@ -7,14 +7,15 @@ A record is the unit every table, figure and leaderboard number is computed from
   ``policy_sha256`` (of the policy file; of ``"racebench-builtin:<name>:v<version>"`` for a built-in agent),
   ``policy_source`` (the spec it was loaded from), ``privileged`` (decided by the evaluator);
 * **on what**: ``env_id``, ``track``, ``variant``, ``env_version`` (:data:`racebench.ENV_VERSION`, bumped
-  whenever episode outcomes can change), ``seed``, ``seed_protocol``, ``seed_set``;
+  whenever episode outcomes can change), ``renderer`` (of the depth image), ``seed``, ``seed_protocol``,
+  ``seed_set``;
 * **the outcome**: ``success``, ``lap_time``, ``crashed``, ``crash_reason``, ``gates_passed``, ``return``,
   ``steps``, ``error``;
 * **where**: ``racebench_version``, ``git_commit``, ``git_dirty``, ``host_cpu``, ``host_platform`` and the
   versions of Python, numpy, torch and pybullet;
 * ``digest``: sha256 of the canonical JSON of every other field.
 
-The file name is derived from (policy, env id, env version, seed protocol, seed set, seed), so a record
+The file name is derived from (policy, env id, env version, seed protocol, seed set, seed, renderer), so a record
 copied or renamed into another slot is detected. :func:`validate_record` checks the schema, the digest
 and the consistency of the outcome with the env (a success passed every gate and its lap time lies in
 its last control step; a failure that neither crashed nor errored ran to the time limit; ...). The
@@ -39,6 +40,7 @@ from typing import Any
 
 RECORD_FORMAT = 2
 SEED_SETS: tuple[str, ...] = ("public",)
+RENDERERS: tuple[str, ...] = ("pybullet", "raycast")  # racebench.env.RENDERERS, without importing the env
 MAX_PUBLIC_EPISODES = 100_000  # public seeds are EVAL_SEED_BASE + i, i < this
 POLICY_KINDS: tuple[str, ...] = ("builtin", "sb3", "onnx", "python")
 #: What an env crash names (racebench.collision): gate i, obstacle j, the ground, or leaving the arena.
@@ -58,6 +60,7 @@ SCHEMA: dict[str, tuple[tuple[type, ...], bool]] = {
     "track": (_STR, False),
     "variant": (_STR, False),
     "env_version": (_INT, False),
+    "renderer": (_STR, False),
     "seed": (_INT, False),
     "seed_protocol": (_INT, False),
     "seed_set": (_STR, False),
@@ -103,9 +106,11 @@ def record_digest(record: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(body, sort_keys=True, allow_nan=False).encode()).hexdigest()
 
 
-def record_name(policy_sha256: str, env_id: str, env_version: int, seed_protocol: int, seed_set: str, seed: int) -> str:
+def record_name(
+    policy_sha256: str, env_id: str, env_version: int, seed_protocol: int, seed_set: str, seed: int, renderer: str
+) -> str:
     """File name of the record of one episode slot."""
-    key = f"{policy_sha256}\0{env_id}\0{env_version}\0{seed_protocol}\0{seed_set}\0{seed}"
+    key = f"{policy_sha256}\0{env_id}\0{env_version}\0{seed_protocol}\0{seed_set}\0{seed}\0{renderer}"
     return hashlib.sha256(key.encode()).hexdigest()[:24] + ".json"
 
 
@@ -113,7 +118,7 @@ def name_of(record: dict[str, Any]) -> str:
     """The file name a valid record must have."""
     return record_name(
         record["policy_sha256"], record["env_id"], record["env_version"],
-        record["seed_protocol"], record["seed_set"], record["seed"],
+        record["seed_protocol"], record["seed_set"], record["seed"], record["renderer"],
     )  # fmt: skip
 
 
@@ -231,6 +236,8 @@ def validate_record(record: Any, file_name: str | None = None) -> dict[str, Any]
         raise bad(f"track/variant {record['track']}/{record['variant']} do not match env_id {record['env_id']}")
     if record["seed_protocol"] != SEED_PROTOCOL:
         raise bad(f"seed_protocol {record['seed_protocol']} (this racebench uses {SEED_PROTOCOL})")
+    if record["renderer"] not in RENDERERS:
+        raise bad(f"renderer {record['renderer']!r} not in {RENDERERS}")
     if record["seed_set"] not in SEED_SETS:
         raise bad(f"seed_set {record['seed_set']!r} not in {SEED_SETS}")
     if not EVAL_SEED_BASE <= record["seed"] < EVAL_SEED_BASE + MAX_PUBLIC_EPISODES:

@@ -17,6 +17,7 @@ def test_bench_quick_writes_every_measurement(tmp_path, capsys) -> None:
     assert {row["section"] for row in rows} == {
         "depth",
         "steps",
+        "evaluation",
         "cpu",
         "training",
         "parts",
@@ -39,6 +40,10 @@ def test_bench_quick_writes_every_measurement(tmp_path, capsys) -> None:
         "vision-ppo, raycast depth",
         "vision-ppo, pybullet depth",
         "ratio vision-ppo raycast / pybullet",
+        "evaluation of vision-ppo-S, raycast depth, lockstep 4",
+        "env alone, vision-ppo-S, raycast depth episodes replayed",
+        "ratio evaluation / env alone, state-ppo-S",
+        "collision check (swept sphere, 1 substep)",
     ):
         assert values[name] > 0, name
     # Even a tiny run shows the ray caster well ahead, on the same poses, with the same image.

@@ -315,3 +315,114 @@ def test_training_curves_figure_from_progress_files(tmp_path: Path) -> None:
         plot_training_curves([bad], tmp_path / "x.png")
     with pytest.raises(ValueError, match="no progress.csv"):
         plot_training_curves([tmp_path / "nowhere"], tmp_path / "x.png")
+
+
+# ------------------------------------------------------------- lockstep evaluation
+
+
+def test_act_batch_is_predict_on_the_stacked_batch(tiny_ppo, tmp_path: Path) -> None:
+    from sb3_contrib import RecurrentPPO
+
+    model, path = tiny_ppo
+    agent = load_agent(str(path), trust_code=True)
+    obs = list(np.random.default_rng(3).uniform(-1, 1, size=(6, 17)).astype(np.float32))
+    agent.start(6)
+    np.testing.assert_array_equal(agent.act_batch(obs), model.predict(np.stack(obs), deterministic=True)[0])
+
+    env = gym.make("RaceObs-S-Level1-v0", obs_mode="state")
+    lstm = RecurrentPPO("MlpLstmPolicy", env, n_steps=32, batch_size=32, n_epochs=1, seed=0,
+                        policy_kwargs={"lstm_hidden_size": 8, "net_arch": [8]}, device="cpu")  # fmt: skip
+    lstm.save(tmp_path / "lstm.zip")
+    agent = load_agent(str(tmp_path / "lstm.zip"), trust_code=True)
+    agent.start(6)
+    state, starts = None, np.ones(6, dtype=bool)
+    for _ in range(3):  # the hidden state is carried between calls as predict carries it
+        expected, state = lstm.predict(np.stack(obs), state=state, episode_start=starts, deterministic=True)
+        np.testing.assert_allclose(agent.act_batch(obs), expected, rtol=0, atol=1e-6)
+        starts = np.zeros(6, dtype=bool)
+    agent.reset_slot(2)
+    starts[2] = True
+    expected, _ = lstm.predict(np.stack(obs), state=state, episode_start=starts, deterministic=True)
+    np.testing.assert_allclose(agent.act_batch(obs), expected, rtol=0, atol=1e-6)
+
+
+def test_lockstep_flies_the_same_episodes_as_one_at_a_time(tiny_ppo, tmp_path: Path) -> None:
+    _, path = tiny_ppo
+    envs = ["RaceObs-S-Level1-v0", "RaceObs-S-v0"]
+    columns = ["env_id", "seed", "success", "crash_reason", "gates_passed", "steps"]
+    frames = {}
+    for batch in (1, 3):
+        out = tmp_path / f"b{batch}"
+        Evaluator(str(path), envs, episodes=4, out_dir=out, trust_code=True, batch=batch).run(progress=False)
+        frames[batch] = pd.read_csv(out / "episodes.csv")
+    pd.testing.assert_frame_equal(frames[1][columns], frames[3][columns])
+    np.testing.assert_allclose(frames[1]["return"], frames[3]["return"], rtol=1e-5)
+
+
+BATCH_AGENTS = textwrap.dedent(
+    """
+    import numpy as np
+    import torch
+
+    SEEN_THREADS = []
+
+    class NanInSlotZero:
+        obs_mode = "state"
+        def reset(self, env=None, seed=None):
+            pass
+        def act(self, obs):
+            return np.zeros(4)
+        def start(self, slots):
+            self.slots = slots
+        def reset_slot(self, slot):
+            pass
+        def act_batch(self, observations):
+            SEEN_THREADS.append(torch.get_num_threads())
+            actions = np.tile([0.0, 0.0, 0.0, 0.0], (self.slots, 1))
+            actions[0, 1] = np.nan
+            return actions
+
+    class Raises(NanInSlotZero):
+        def act_batch(self, observations):
+            raise RuntimeError("batch exploded")
+    """
+)
+
+
+def test_lockstep_agent_failures_end_only_their_episodes(tmp_path: Path) -> None:
+
+    path = tmp_path / "batch_agents.py"
+    path.write_text(BATCH_AGENTS)
+    out = tmp_path / "nan"
+    Evaluator(f"{path}:NanInSlotZero", ["RaceObs-S-Level1-v0"], episodes=3, out_dir=out, trust_code=True,
+              batch=2).run(progress=False)  # fmt: skip
+    episodes = pd.read_csv(out / "episodes.csv")
+    errors = episodes["crash_reason"].fillna("").eq("agent_error")
+    # Slot 0 fails at once, every time it gets an episode; slot 1 flies its episode to the end.
+    assert errors.sum() == 2 and episodes.loc[~errors, "steps"].iloc[0] > 1
+    assert episodes.loc[errors, "error"].str.contains("not finite").all()
+    out = tmp_path / "raises"
+    Evaluator(f"{path}:Raises", ["RaceObs-S-Level1-v0"], episodes=3, out_dir=out, trust_code=True,
+              batch=2).run(progress=False)  # fmt: skip
+    episodes = pd.read_csv(out / "episodes.csv")
+    assert len(episodes) == 3 and episodes["error"].str.contains("batch exploded").all()
+
+
+def test_the_in_process_evaluator_runs_torch_on_its_configured_threads(tmp_path: Path) -> None:
+    import torch
+
+    from racebench import evaluation
+
+    path = tmp_path / "thread_probe.py"
+    path.write_text(BATCH_AGENTS)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        Evaluator(f"{path}:NanInSlotZero", ["RaceObs-S-Level1-v0"], episodes=2, out_dir=tmp_path / "o",
+                  trust_code=True, batch=2).run(progress=False)  # fmt: skip
+        agent = evaluation._WORKER["agent"]  # the in-process evaluator's agent
+        seen = agent.act_batch.__globals__["SEEN_THREADS"]  # torch threads at each of its policy calls
+        assert seen and set(seen) == {evaluation.torch_threads()}
+        assert torch.get_num_threads() == 2  # restored afterwards
+    finally:
+        torch.set_num_threads(before)
