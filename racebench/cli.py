@@ -137,6 +137,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="override the config's num_processes (e.g. 1 per run when two share 2 cores)",
     )
     p_train.add_argument("--eval-episodes", type=int, default=10, help="final evaluation episodes (0: none)")
+    p_train.add_argument(
+        "--device",
+        default="auto",
+        choices=("auto", "cpu", "cuda"),
+        help="where the networks train (default auto: CUDA when torch sees a GPU); envs always step on CPU",
+    )
 
     p_bench = sub.add_parser("bench", help="throughput: depth frames/s of both renderers, env steps/s, memory")
     p_bench.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds (a smoke test)")
@@ -163,7 +169,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         env.close()
         print(f"wrote {path} and {json_path}")
     elif args.command == "train":
-        from racebench.training.train import TrainConfig, train
+        from racebench.training.train import TrainConfig, resolve_device, train
 
         try:
             config = TrainConfig.from_yaml(args.config)
@@ -173,11 +179,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 config.num_processes = args.num_processes
                 config.update_threads = args.num_processes  # as many learner threads as cores it was given
             config.validate(f"{args.config} with the command-line overrides")
+            resolve_device(args.device)
         except (OSError, ValueError) as exc:
             raise SystemExit(f"racebench train: {exc}") from exc
         result = train(
-            config, args.track, args.steps, args.seed, args.out, args.resume, eval_episodes=args.eval_episodes
-        )
+            config, args.track, args.steps, args.seed, args.out, args.resume,
+            eval_episodes=args.eval_episodes, device=args.device,
+        )  # fmt: skip
         print(json.dumps(result, indent=2))
     elif args.command == "evaluate":
         return _evaluate(args)

@@ -137,6 +137,74 @@ def test_episodes_begun_before_a_promotion_do_not_count() -> None:
     assert callback.level == 3
 
 
+def test_a_level_budget_promotes_a_policy_that_cannot_reach_the_bar() -> None:
+    config = TrainConfig(name="t", window=2, promote_at=1.0, level_budget={1: 100, 2: 50})
+    callback = CurriculumCallback(config)
+    model = FakeModel(FakeVecEnv())
+    callback.init_callback(model)
+    callback.on_training_start({}, {})
+    callback.clock = lambda: 12.5
+    failed_lap = {"is_success": False, "start_gate": 0}
+
+    def step_to(timestep: int) -> None:
+        model.num_timesteps = timestep
+        callback.update_locals({"dones": [True] * 4, "infos": [failed_lap] * 4})
+        callback.on_step()
+
+    step_to(99)
+    assert callback.level == 1
+    step_to(100)  # budget of level 1 spent, never a success
+    assert callback.level == 2 and callback.promotions[-1] == {"level": 2, "timestep": 100, "wall_s": 12.5,
+                                                               "by": "budget"}  # fmt: skip
+    step_to(149)
+    assert callback.level == 2
+    step_to(150)
+    assert callback.level == 3 and callback.promotions[-1]["by"] == "budget"
+    step_to(10_000)  # no budget past the last level
+    assert callback.level == 3 and callback.solved is None
+
+
+def test_the_bar_still_promotes_first_and_solving_the_last_level_is_recorded(tmp_path: Path) -> None:
+    config = TrainConfig(name="t", window=2, promote_at=1.0, level_budget={1: 1000, 2: 1000})
+    callback = CurriculumCallback(config, state_file=tmp_path / "curriculum.json")
+    model = FakeModel(FakeVecEnv())
+    callback.init_callback(model)
+    callback.on_training_start({}, {})
+    lap = {"is_success": True, "start_gate": 0}
+    for timestep in (10, 20, 30, 40, 50):  # a promotion's in-flight episodes do not count (one step each)
+        model.num_timesteps = timestep
+        callback.update_locals({"dones": [True, True, False, False], "infos": [lap] * 4})
+        callback.on_step()
+    assert [(p["level"], p["by"]) for p in callback.promotions] == [(2, "bar"), (3, "bar")]
+    assert callback.solved == {"level": 3, "timestep": 50}
+    saved = json.loads((tmp_path / "curriculum.json").read_text())
+    assert saved["solved"] == callback.solved and len(saved["promotions"]) == 2
+
+
+def test_bad_level_budgets_are_named(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text("name: x\nlevel_budget: {3: 1000}\n")  # the last level has no promotion to make
+    with pytest.raises(ValueError, match="level_budget"):
+        TrainConfig.from_yaml(path)
+    path.write_text("name: x\nlevel_budget: {1: -5}\n")
+    with pytest.raises(ValueError, match="level_budget"):
+        TrainConfig.from_yaml(path)
+
+
+def test_device_selection() -> None:
+    import torch
+
+    from racebench.training.train import resolve_device
+
+    assert resolve_device("cpu") == "cpu"
+    assert resolve_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no CUDA device"):
+            resolve_device("cuda")
+    with pytest.raises(ValueError, match="device must be one of"):
+        resolve_device("tpu")
+
+
 def test_no_promotion_without_curriculum() -> None:
     config = TrainConfig(name="t", window=2, curriculum=False, start_level=3)
     callback = CurriculumCallback(config)
@@ -231,7 +299,9 @@ def test_training_smoke_run(tmp_path: Path, config_path: Path) -> None:
     assert len(progress) >= 4 and progress["level"].iloc[0] == config.start_level
     assert list((tmp_path / "checkpoints").glob("*.zip"))
     assert (tmp_path / "eval" / "summary.csv").is_file()
-    assert json.loads((tmp_path / "summary.json").read_text())["config"] == config.name
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["config"] == config.name and summary["device"] == "cpu"
+    assert summary["time_to_solve"] == {"promotions": summary["promotions"], "solved": None}
 
 
 def test_training_on_the_batched_vec_env(tmp_path: Path) -> None:

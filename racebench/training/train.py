@@ -82,6 +82,9 @@ class TrainConfig:
     start_level: int = 1
     promote_at: float = 0.8
     window: int = 100
+    # Steps a level may take before promotion anyway (levels below the last; none: promotion by the bar only).
+    # An obstacle-blind policy may never reach the bar at level 2 (state-ppo stalled there for 2.9M steps).
+    level_budget: dict[int, int] = field(default_factory=dict)
     levels: dict[int, dict[str, Any]] = field(default_factory=lambda: {k: dict(v) for k, v in CURRICULUM.items()})
     scene_groups: dict[int, int] = field(default_factory=lambda: {1: 2, 2: 4, 3: 8})
     start_spread: tuple[float, float, float] = (0.5, 0.5, 0.5)
@@ -123,7 +126,7 @@ class TrainConfig:
             raise ValueError(f"{path}: unknown key {unknown[0]!r} (known: {sorted(known)})")
         if "name" not in data:
             raise ValueError(f"{path}: missing key 'name'")
-        for key in ("levels", "scene_groups"):
+        for key in ("levels", "scene_groups", "level_budget"):
             if key in data:
                 data[key] = {int(k): v for k, v in data[key].items()}
         for key in ("start_spread", "learning_rate", "net_arch"):
@@ -148,6 +151,11 @@ class TrainConfig:
             ((self.n_envs * self.n_steps) % self.batch_size == 0, "n_envs * n_steps must be a multiple of batch_size"),
             (len(self.learning_rate) == 2 and min(self.learning_rate) > 0, "learning_rate must be [start, end] > 0"),
             (all(k >= 1 for k in self.scene_groups.values()), "scene_groups values must be >= 1"),
+            (
+                all(k in self.levels and k < max(self.levels) for k in self.level_budget)
+                and all(isinstance(v, int) and v >= 1 for v in self.level_budget.values()),
+                "level_budget must map levels below the last to step counts >= 1",
+            ),
             (self.cnn in CNN_KINDS, f"cnn must be one of {CNN_KINDS}"),
             (self.torch_threads >= 1 and self.update_threads >= 1, "torch_threads and update_threads must be >= 1"),
         ]
@@ -187,11 +195,14 @@ def is_lap(info: dict[str, Any]) -> bool:
 
 
 class CurriculumCallback(BaseCallback):
-    """Promote to the next level when the rolling success rate over ``window`` episodes reaches ``promote_at``.
+    """Promote to the next level when the rolling success rate over ``window`` episodes reaches ``promote_at``
+    (``"by": "bar"``), or when the level has used its ``level_budget`` of steps (``"by": "budget"``).
 
     Only episodes from the track start count (:func:`is_lap`): success then means a whole run, as evaluated.
     After a promotion, episodes that began at the old level do not count for the new one (``RaceEnv.set_task``
-    applies at each env's next reset).
+    applies at each env's next reset). At the last level, the first time the rolling success reaches
+    ``promote_at`` is recorded as ``solved`` (time to solve). ``clock`` (set by :func:`train`) gives the run's
+    wall-clock seconds, resumed parts included, for the promotion and solve records.
     """
 
     def __init__(
@@ -200,20 +211,35 @@ class CurriculumCallback(BaseCallback):
         level: int | None = None,
         verbose: int = 0,
         state_file: Path | None = None,
-        promotions: list[dict[str, int]] | None = None,
+        promotions: list[dict[str, Any]] | None = None,
+        solved: dict[str, Any] | None = None,
     ) -> None:
         super().__init__(verbose)
         self.config = config
         self.level = config.start_level if level is None else level
         self.successes: deque[bool] = deque(maxlen=config.window)
-        self.promotions: list[dict[str, int]] = list(promotions or [])
+        self.promotions: list[dict[str, Any]] = list(promotions or [])
+        self.solved = solved
         self.state_file = state_file
         self.episode_level: np.ndarray | None = None  # the level each env's running episode began at
+        self.clock: Any = None
+
+    @property
+    def level_started_at(self) -> int:
+        """Timestep at which the current level began (0 for the start level)."""
+        return max([0] + [int(p["timestep"]) for p in self.promotions if int(p["level"]) == self.level])
 
     def save_state(self) -> None:
-        """Write level and promotions to ``state_file`` (at every promotion, so a killed run can resume)."""
+        """Write level, promotions and solve to ``state_file`` (at every change, so a killed run can resume)."""
         if self.state_file is not None:
-            atomic_write(self.state_file, json.dumps({"level": self.level, "promotions": self.promotions}))
+            state = {"level": self.level, "promotions": self.promotions, "solved": self.solved}
+            atomic_write(self.state_file, json.dumps(state))
+
+    def _stamp(self) -> dict[str, Any]:
+        stamp: dict[str, Any] = {"timestep": int(self.num_timesteps)}
+        if self.clock is not None:
+            stamp["wall_s"] = round(float(self.clock()), 1)
+        return stamp
 
     @property
     def last_level(self) -> int:
@@ -226,19 +252,22 @@ class CurriculumCallback(BaseCallback):
         full = len(self.successes) == self.successes.maxlen
         if self.config.curriculum and full and np.mean(self.successes) >= self.config.promote_at:
             if self.level < self.last_level:
-                self.promote()
+                self.promote("bar")
+            elif self.solved is None:
+                self.solved = {"level": self.level, **self._stamp()}
+                self.save_state()
 
-    def promote(self) -> None:
-        """Move every env to the next level and log it."""
+    def promote(self, by: str = "bar") -> None:
+        """Move every env to the next level and log it (``by``: ``"bar"`` or ``"budget"``)."""
         self.level += 1
         self.training_env.env_method("set_task", **self.config.level_kwargs(self.level))
         # Shared layouts were drawn at the old level: fresh scenes until the next rollout regroups the envs.
         self.training_env.env_method("set_layout", None)
         self.successes.clear()
-        self.promotions.append({"level": self.level, "timestep": int(self.num_timesteps)})
+        self.promotions.append({"level": self.level, **self._stamp(), "by": by})
         self.save_state()
         if self.verbose:
-            print(f"curriculum: level {self.level} at step {self.num_timesteps}")
+            print(f"curriculum: level {self.level} at step {self.num_timesteps} (by {by})")
 
     def _on_training_start(self) -> None:
         self.episode_level = np.full(self.training_env.num_envs, self.level)
@@ -253,6 +282,9 @@ class CurriculumCallback(BaseCallback):
             if is_lap(info) and self.episode_level[i] == self.level:
                 self.record(info.get("is_success", False))
             self.episode_level[i] = level_at_reset
+        budget = self.config.level_budget.get(self.level)
+        if self.config.curriculum and budget and self.num_timesteps - self.level_started_at >= budget:
+            self.promote("budget")
         self.logger.record("curriculum/level", self.level)
         return True
 
@@ -377,7 +409,7 @@ def _read_progress(path: Path) -> pd.DataFrame | None:
     return pd.read_csv(path)
 
 
-def resume_curriculum(out: Path, timesteps: int, start_level: int) -> tuple[int, list[dict[str, int]]]:
+def resume_curriculum(out: Path, timesteps: int, start_level: int) -> tuple[int, list[dict[str, Any]]]:
     """Level and promotions of a run resumed at ``timesteps``: promotions after that step are forgotten.
 
     Read from ``curriculum.json``; a run killed before this file existed is recovered from the level column
@@ -437,8 +469,23 @@ def make_envs(config: TrainConfig, track: str, seed: int) -> VecEnv:
     return env
 
 
-def make_model(config: TrainConfig, env: VecEnv, seed: int, tensorboard: str | None) -> Any:
-    """PPO (feed-forward) or RecurrentPPO with the GRU policy, with the paper's network sizes."""
+DEVICES: tuple[str, ...] = ("auto", "cpu", "cuda")
+
+
+def resolve_device(device: str) -> str:
+    """``"auto"`` → ``"cuda"`` when torch sees a GPU, else ``"cpu"``; ``"cuda"`` without one is an error."""
+    if device not in DEVICES:
+        raise ValueError(f"device must be one of {DEVICES}, got {device!r}")
+    available = torch.cuda.is_available()
+    if device == "auto":
+        return "cuda" if available else "cpu"
+    if device == "cuda" and not available:
+        raise ValueError("device 'cuda': torch sees no CUDA device (torch.cuda.is_available() is False)")
+    return device
+
+
+def make_model(config: TrainConfig, env: VecEnv, seed: int, tensorboard: str | None, device: str = "cpu") -> Any:
+    """PPO (feed-forward) or RecurrentPPO with the GRU policy, with the paper's network sizes, on ``device``."""
     from racebench.training.policies import RaceFeatures, RecurrentGRUPolicy
 
     features_kwargs = {"cnn": config.cnn}
@@ -453,7 +500,7 @@ def make_model(config: TrainConfig, env: VecEnv, seed: int, tensorboard: str | N
         clip_range=config.clip_range,
         ent_coef=config.ent_coef,
         seed=seed,
-        device="cpu",
+        device=resolve_device(device),
         tensorboard_log=tensorboard,
         verbose=0,
     )
@@ -497,8 +544,13 @@ def train(
     resume: str | Path | None = None,
     checkpoint_every: int = 50_000,
     eval_episodes: int = 10,
+    device: str = "auto",
 ) -> dict[str, Any]:
-    """Train one baseline on one track; returns a summary (paths, steps, wall time, samples/s, evaluation)."""
+    """Train one baseline on one track; returns a summary (paths, steps, wall time, samples/s, evaluation).
+
+    ``device``: where the networks live (``"auto"``: CUDA when torch sees a GPU); the envs always step on CPU
+    worker processes (``config.num_processes``), so the same config runs unchanged on a GPU machine.
+    """
     if track not in BUILTIN_TRACKS:
         raise ValueError(f"track must be one of {BUILTIN_TRACKS}, got {track!r}")
     out = Path(out or Path("runs") / f"{config.name}-{track}-seed{seed}")
@@ -509,10 +561,10 @@ def train(
     torch.set_num_threads(config.torch_threads)  # measured: 7x faster updates than torch's default here
     if resume is None:
         env = make_envs(config, track, seed)
-        model = make_model(config, env, seed, str(out / "tb"))
+        model = make_model(config, env, seed, str(out / "tb"), device)
         level, promotions, started_at = config.start_level, [], 0
     else:
-        model = _load_model(resume)
+        model = _load_model(resume, resolve_device(device))
         started_at = model.num_timesteps
         level, promotions = resume_curriculum(out, started_at, config.start_level)
         if started_at > 0 and not (state_file.exists() or (out / "progress.csv").exists()):
@@ -527,12 +579,20 @@ def train(
         if level != config.start_level:
             env.env_method("set_task", **config.level_kwargs(level))  # applies at the reset in set_env
         model.set_env(env)
-    curriculum = CurriculumCallback(config, level=level, verbose=1, state_file=state_file, promotions=promotions)
+    solved = None
+    if resume is not None and state_file.exists():
+        saved = json.loads(state_file.read_text()).get("solved")
+        solved = saved if saved and saved["timestep"] <= started_at else None
+    curriculum = CurriculumCallback(
+        config, level=level, verbose=1, state_file=state_file, promotions=promotions, solved=solved
+    )
+    progress = ProgressCSVCallback(out / "progress.csv", curriculum)
+    curriculum.clock = lambda: time.perf_counter() - progress.started  # the run's wall clock, resumes included
     callbacks = CallbackList(
         [
             curriculum,
             MultiSceneCallback(config, curriculum),
-            ProgressCSVCallback(out / "progress.csv", curriculum),
+            progress,
             CheckpointCallback(
                 # at rollout ends, so a resumed run loses no collected samples
                 max(round(checkpoint_every / (config.n_envs * config.n_steps)), 1) * config.n_steps,
@@ -563,6 +623,10 @@ def train(
         "samples_per_s": round((model.num_timesteps - started_at) / wall, 1),
         "level": curriculum.level,
         "promotions": curriculum.promotions,
+        # Time to solve: steps and wall clock to each promotion (and whether the bar or the budget promoted),
+        # and to the first time the rolling success at the last level reached promote_at.
+        "time_to_solve": {"promotions": curriculum.promotions, "solved": curriculum.solved},
+        "device": str(model.device),
         "checkpoint": str(final),
     }
     if eval_episodes > 0:
@@ -597,10 +661,10 @@ def _restore_reward_stats(env: VecEnv, checkpoint: Path) -> None:
         env.ret_rms = saved.ret_rms  # rewards only: the policy never sees normalised observations
 
 
-def _load_model(path: str | Path) -> Any:
+def _load_model(path: str | Path, device: str = "cpu") -> Any:
     from racebench.agents import SB3Agent
 
-    return SB3Agent._load(Path(path), "cpu")
+    return SB3Agent._load(Path(path), device)  # the user's own run to resume: loaded as trusted
 
 
 def resume_seed(seed: int, timesteps: int, n_envs: int) -> int:
