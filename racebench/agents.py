@@ -295,7 +295,7 @@ class SB3Agent:
 
         policy = self.model.policy
         obs, _ = policy.obs_to_tensor(_stack(observations, self.obs_mode))
-        with torch.inference_mode():
+        with torch.no_grad():  # not inference_mode: RaceFeatures converts its CNN weights on first use
             if self.recurrent:
                 starts = torch.from_numpy(self.batch_starts)
                 actions, self.batch_state = policy._predict(

@@ -144,6 +144,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="where the networks train (default auto: CUDA when torch sees a GPU); envs always step on CPU",
     )
 
+    p_distill = sub.add_parser(
+        "distill", help="teacher-student baseline: a depth policy imitates the privileged planner (DAgger)"
+    )
+    p_distill.add_argument("--track", default="S", choices=["S", "J", "Circle"])
+    p_distill.add_argument("--iterations", type=int, default=8, help="DAgger iterations (default 8)")
+    p_distill.add_argument("--steps-per-iteration", type=int, default=20_000, help="env steps collected per iteration")
+    p_distill.add_argument("--n-envs", type=int, default=16, help="envs flown side by side (default 16)")
+    p_distill.add_argument("--seed", type=int, default=0, help="training seed (< 1,000,000)")
+    p_distill.add_argument("--out", default=None, help="run directory (default runs/vision-dagger-<track>-seed<seed>)")
+    p_distill.add_argument("--eval-episodes", type=int, default=10, help="final evaluation episodes (0: none)")
+
     p_bench = sub.add_parser("bench", help="throughput: depth frames/s of both renderers, env steps/s, memory")
     p_bench.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds (a smoke test)")
     p_bench.add_argument("--out", default="bench.csv", help="CSV of every measurement (default bench.csv)")
@@ -187,6 +198,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             eval_episodes=args.eval_episodes, device=args.device,
         )  # fmt: skip
         print(json.dumps(result, indent=2))
+    elif args.command == "distill":
+        from racebench.training.dagger import DaggerConfig, distill
+
+        config = DaggerConfig(
+            track=args.track, iterations=args.iterations, steps_per_iteration=args.steps_per_iteration,
+            n_envs=args.n_envs, seed=args.seed,
+        )  # fmt: skip
+        try:
+            config.validate()
+        except ValueError as exc:
+            raise SystemExit(f"racebench {exc}") from exc
+        out = args.out or Path("runs") / f"vision-dagger-{args.track}-seed{args.seed}"
+        print(json.dumps(distill(config, out, eval_episodes=args.eval_episodes), indent=2))
     elif args.command == "evaluate":
         return _evaluate(args)
     elif args.command == "table":

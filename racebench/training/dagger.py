@@ -1,0 +1,262 @@
+"""Teacher–student distillation with DAgger: a depth policy imitates the privileged planner.
+
+The field's answer to the cost of learning vision-based flight from reward alone (Loquercio et al. 2021;
+Xing et al. 2024): a *teacher* with privileged information (here :class:`~racebench.planner.PlannerAgent`, which
+plans on the true scene) labels every state the *student* visits, and the student, which sees only what a
+deployed policy sees (the 17-d state and the noisy depth image), is trained by supervised regression on the
+aggregate of those labels (DAgger, Ross et al. 2011). The algorithm, in full:
+
+1. ``iteration 0``: the teacher flies; every step's observation is stored with the teacher's action.
+2. ``iteration k``: each step, the student's action is executed with probability ``1 - beta_k`` (else the
+   teacher's), and the teacher's action is stored for the student's observation, so the dataset covers the
+   states the student itself reaches. ``beta_k = beta_decay ** k``.
+3. After each collection, the student is trained for ``epochs`` passes over the whole aggregate (MSE between its
+   deterministic action and the teacher's).
+
+The student is the feed-forward ``vision-no-gru`` network (state MLP + strided depth CNN → [256, 192, 96] →
+action), held in a stable-baselines3 ``PPO`` so the result is an ordinary checkpoint: the common evaluator
+flies it, ``export_onnx`` exports it, and PPO can fine-tune it. Training seeds are below the evaluation seeds.
+Depth images are stored as uint8 (1/255 steps of normalised inverse depth, below the 0.02 depth noise).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from racebench.evaluation import EVAL_SEED_BASE
+from racebench.planner import PlannerAgent
+from racebench.raycast import BatchDepthRenderer
+
+
+@dataclass
+class DaggerConfig:
+    """Settings of one distillation run (all recorded in the run's ``summary.json``)."""
+
+    track: str = "S"
+    env_id: str = ""  # default: RaceObs-<track>-v0, the evaluation task (density 3, v_d 8 m/s)
+    iterations: int = 8
+    steps_per_iteration: int = 20_000  # environment steps collected per iteration
+    n_envs: int = 16  # envs flown side by side (one batched student call per step)
+    beta_decay: float = 0.5  # P(teacher acts) = beta_decay ** iteration
+    epochs: int = 2  # passes over the aggregate dataset after each collection
+    batch_size: int = 256
+    learning_rate: float = 3e-4
+    max_samples: int = 250_000  # aggregate capacity; the oldest samples are overwritten beyond it
+    gate_shift: float = 0.3  # training scenes: gates shifted ±m, as in RL training (evaluation: none)
+    seed: int = 0
+    update_threads: int = 2
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad setting."""
+        checks = [
+            (self.iterations >= 1, "iterations must be >= 1"),
+            (self.steps_per_iteration >= self.n_envs >= 1, "need steps_per_iteration >= n_envs >= 1"),
+            (0.0 <= self.beta_decay <= 1.0, "beta_decay must be in [0, 1]"),
+            (self.epochs >= 1 and self.batch_size >= 1, "epochs and batch_size must be >= 1"),
+            (self.learning_rate > 0, "learning_rate must be > 0"),
+            (self.max_samples >= self.batch_size, "max_samples must be >= batch_size"),
+            (0 <= self.seed < EVAL_SEED_BASE, f"seed must be in [0, {EVAL_SEED_BASE})"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(f"dagger: {message}")
+
+
+class Dataset:
+    """The DAgger aggregate: observations (depth as uint8) and the teacher's actions, a ring buffer."""
+
+    def __init__(self, capacity: int, depth_size: int) -> None:
+        self.state = np.zeros((capacity, 17), dtype=np.float32)
+        self.depth = np.zeros((capacity, 1, depth_size, depth_size), dtype=np.uint8)
+        self.action = np.zeros((capacity, 4), dtype=np.float32)
+        self.size = self.next = 0
+
+    def add(self, state: np.ndarray, depth: np.ndarray, action: np.ndarray) -> None:
+        """Store a batch of labelled observations."""
+        for k in range(len(state)):
+            i = self.next
+            self.state[i] = state[k]
+            self.depth[i] = np.round(depth[k] * 255.0).astype(np.uint8)
+            self.action[i] = action[k]
+            self.next = (i + 1) % len(self.state)
+            self.size = min(self.size + 1, len(self.state))
+
+    def batch(self, index: np.ndarray) -> dict[str, torch.Tensor]:
+        """A minibatch as the student's observation dict (depth back to [0, 1] floats) plus its labels."""
+        return {
+            "state": torch.from_numpy(self.state[index]),
+            "depth": torch.from_numpy(self.depth[index].astype(np.float32) / 255.0),
+            "action": torch.from_numpy(self.action[index]),
+        }
+
+
+def make_student(env: gym.Env, seed: int) -> Any:
+    """The student: ``vision-no-gru``'s network in an SB3 ``PPO`` (deterministic action = the actor's mean)."""
+    from racebench.training.train import TrainConfig, make_model
+
+    config = TrainConfig.from_yaml("vision-no-gru")
+    return make_model(config, env, seed, tensorboard=None, device="cpu")
+
+
+def student_mean(policy: Any, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The student's deterministic action (before clipping) for a batch of observations."""
+    features = policy.extract_features(obs, policy.pi_features_extractor)
+    return policy.action_net(policy.mlp_extractor.forward_actor(features))
+
+
+def collect(
+    envs: list[Any],
+    teachers: list[PlannerAgent],
+    policy: Any,
+    beta: float,
+    steps: int,
+    rng: np.random.Generator,
+    seeds: list[int],
+    dataset: Dataset,
+) -> dict[str, float]:
+    """Fly ``steps`` env steps with the beta-mixture of teacher and student; label every step with the teacher.
+
+    ``envs`` are unwrapped vision ``RaceEnv``s with the ray caster (depth of all rendered in one call);
+    ``seeds`` is a shared counter of training seeds. Returns the episodes' success rate and mean length.
+    """
+    caster = BatchDepthRenderer(envs[0].camera)
+
+    def observe(indices: list[int]) -> list[dict]:
+        depth = caster.render(
+            [envs[i].scene for i in indices],
+            np.stack([envs[i].drone.position for i in indices]),
+            np.stack([envs[i].drone.rotation for i in indices]),
+        )
+        return [envs[i].observation(d) for i, d in zip(indices, depth, strict=True)]
+
+    def start(i: int) -> None:
+        envs[i].reset_state(seed=seeds[0])
+        seeds[0] += 1
+        teachers[i].reset(env=envs[i], seed=None)
+
+    for i in range(len(envs)):
+        start(i)
+    obs = observe(list(range(len(envs))))
+    successes, lengths, taken = [], [], 0
+    lengths_now = np.zeros(len(envs), dtype=int)
+    while taken < steps:
+        teacher = np.array([t.act() for t in teachers], dtype=np.float32).clip(-1.0, 1.0)
+        state = np.stack([o["state"] for o in obs])
+        depth = np.stack([o["depth"] for o in obs])
+        dataset.add(state, depth, teacher)
+        with torch.no_grad():  # not inference_mode: RaceFeatures converts its CNN weights on first use
+            student = student_mean(policy, {"state": torch.from_numpy(state), "depth": torch.from_numpy(depth)})
+        student = student.numpy().clip(-1.0, 1.0)
+        use_teacher = rng.random(len(envs)) < beta
+        actions = np.where(use_teacher[:, None], teacher, student)
+        for i, env in enumerate(envs):
+            _, terminated, truncated, info = env.advance(actions[i])
+            lengths_now[i] += 1
+            if terminated or truncated:
+                successes.append(bool(info["is_success"]))
+                lengths.append(int(lengths_now[i]))
+                lengths_now[i] = 0
+                start(i)
+        obs = observe(list(range(len(envs))))
+        taken += len(envs)
+    return {
+        "episodes": len(successes),
+        "success_rate": float(np.mean(successes)) if successes else float("nan"),
+        "mean_length": float(np.mean(lengths)) if lengths else float("nan"),
+    }
+
+
+def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng: np.random.Generator) -> float:
+    """``config.epochs`` passes of minibatch MSE regression over the dataset; returns the last epoch's loss."""
+    policy.set_training_mode(True)
+    losses = []
+    for _ in range(config.epochs):
+        order = rng.permutation(dataset.size)
+        losses = []
+        for start in range(0, dataset.size - config.batch_size + 1, config.batch_size):
+            batch = dataset.batch(order[start : start + config.batch_size])
+            target = batch.pop("action")
+            loss = torch.nn.functional.mse_loss(student_mean(policy, batch), target)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            losses.append(float(loss))
+    policy.set_training_mode(False)
+    return float(np.mean(losses)) if losses else float("nan")
+
+
+def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10) -> dict[str, Any]:
+    """Run DAgger (see the module docstring); write the student checkpoint, ``progress.csv`` and ``summary.json``."""
+    import pandas as pd
+
+    from racebench.records import atomic_write
+
+    config.validate()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    env_id = config.env_id or f"RaceObs-{config.track}-v0"
+    made = [
+        gym.make(env_id, obs_mode="vision", renderer="raycast", gate_shift=config.gate_shift)
+        for _ in range(config.n_envs)
+    ]
+    envs = [m.unwrapped for m in made]
+    teachers = [PlannerAgent() for _ in envs]
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    policy_model = make_student(made[0], config.seed)
+    policy = policy_model.policy
+    optimizer = torch.optim.Adam(policy.parameters(), lr=config.learning_rate)
+    dataset = Dataset(config.max_samples, envs[0].camera.size)
+    seeds = [config.seed * 1000]  # training seeds, far below the evaluation seeds
+    rows: list[dict[str, Any]] = []
+    started = time.perf_counter()
+    for k in tqdm(range(config.iterations), desc="dagger", unit="it"):
+        beta = config.beta_decay**k
+        torch.set_num_threads(1)
+        flown = collect(envs, teachers, policy, beta, config.steps_per_iteration, rng, seeds, dataset)
+        torch.set_num_threads(config.update_threads)
+        loss = fit(policy, dataset, config, optimizer, rng)
+        rows.append({"iteration": k, "beta": beta, **flown, "samples": dataset.size, "loss": loss,
+                     "wall_s": round(time.perf_counter() - started, 1)})  # fmt: skip
+        atomic_write(out / "progress.csv", pd.DataFrame(rows).to_csv(index=False))
+    for m in made:
+        m.close()
+    checkpoint = out / f"vision-dagger-{config.track}.zip"
+    policy_model.save(checkpoint)
+    summary: dict[str, Any] = {
+        "method": "dagger",
+        "teacher": "planner",
+        "config": asdict(config),
+        "checkpoint": str(checkpoint),
+        "wall_s": round(time.perf_counter() - started, 1),
+        "env_steps": config.iterations * config.steps_per_iteration,
+        "last": rows[-1],
+    }
+    if eval_episodes > 0:
+        from racebench.evaluation import Evaluator
+
+        result = Evaluator(  # this run's own checkpoint, written by this process: trusted
+            str(checkpoint), [env_id], episodes=eval_episodes, out_dir=out / "eval", trust_code=True
+        ).run(progress=False)
+        summary["eval"] = {k: float(result[k].iloc[0]) for k in ("n", "successes", "success_rate", "lap_time_mean")}
+    summary = _json_safe(summary)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
+    return summary
+
+
+def _json_safe(value: Any) -> Any:
+    """NaN (an iteration without a finished episode, a lap time without a success) as JSON ``null``."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value

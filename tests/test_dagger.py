@@ -1,0 +1,44 @@
+"""Teacher–student distillation (DAgger): the dataset, the beta schedule, a tiny run end to end."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from racebench.agents import SB3Agent
+from racebench.training.dagger import DaggerConfig, Dataset, distill
+
+
+def test_dataset_is_a_ring_buffer_of_quantised_depth() -> None:
+    data = Dataset(capacity=3, depth_size=2)
+    for k in range(4):
+        data.add(
+            np.full((1, 17), k, np.float32), np.full((1, 1, 2, 2), 0.5, np.float32), np.full((1, 4), k, np.float32)
+        )
+    assert data.size == 3 and sorted(data.action[:, 0].tolist()) == [1.0, 2.0, 3.0]  # the oldest was overwritten
+    batch = data.batch(np.arange(3))
+    assert batch["depth"].dtype.is_floating_point and abs(float(batch["depth"][0, 0, 0, 0]) - 128 / 255) < 1e-6
+
+
+def test_bad_settings_are_named() -> None:
+    with pytest.raises(ValueError, match="beta_decay"):
+        DaggerConfig(beta_decay=1.5).validate()
+    with pytest.raises(ValueError, match="seed"):
+        DaggerConfig(seed=1_000_000).validate()
+
+
+def test_a_tiny_distillation_run(tmp_path: Path) -> None:
+    config = DaggerConfig(iterations=2, steps_per_iteration=256, n_envs=4, epochs=1, batch_size=64)
+    summary = distill(config, tmp_path, eval_episodes=1)
+    progress = pd.read_csv(tmp_path / "progress.csv")
+    assert progress["beta"].tolist() == [1.0, 0.5]  # the teacher flies first, then less and less
+    assert progress["samples"].tolist() == [256, 512]  # every step labelled, aggregated
+    assert np.isfinite(progress["loss"]).all()
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["teacher"] == "planner" and saved["eval"]["n"] == 1
+    agent = SB3Agent(summary["checkpoint"], trust_code=True)
+    assert agent.obs_mode == "vision" and not agent.privileged
