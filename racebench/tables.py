@@ -57,6 +57,8 @@ def _best(values: dict[str, float], privileged: dict[str, bool], lower_is_better
     if not candidates:
         return set()
     target = (min if lower_is_better else max)(candidates.values())
+    if not lower_is_better and target <= 0:
+        return set()  # nobody succeeded: nothing to single out
     return {a for a, v in candidates.items() if v == target}
 
 

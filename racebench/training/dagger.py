@@ -189,7 +189,7 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
-            losses.append(float(loss))
+            losses.append(loss.item())
     policy.set_training_mode(False)
     return float(np.mean(losses)) if losses else float("nan")
 
