@@ -463,8 +463,9 @@ def _python_agent(spec: str, trust_code: bool = False) -> Any:
             f"agent spec {spec!r}: only built-in agents ({[k for k, v in BUILTIN_PRIVILEGED.items() if v]}) may be "
             "privileged; a user agent acts on its observation alone"
         )
+    if not hasattr(agent, "obs_mode"):
+        raise AgentLoadError(f"agent spec {spec!r}: {cls_name} must declare obs_mode = 'vision' or 'state'")
     agent.name = getattr(agent, "name", cls_name)
-    agent.obs_mode = getattr(agent, "obs_mode", "vision")
     agent.privileged = False
     if agent.obs_mode not in ("vision", "state"):
         raise AgentLoadError(f"agent spec {spec!r}: obs_mode must be 'vision' or 'state', got {agent.obs_mode!r}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -13,6 +14,7 @@ import gymnasium as gym
 import racebench
 
 BUILTIN_FLY_AGENTS: tuple[str, ...] = ("follow", "hover", "random")
+SCENE_FORMATS: tuple[str, ...] = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")
 
 
 def _make(env_id: str, **kwargs) -> gym.Env:
@@ -163,7 +165,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     args = parser.parse_args(argv)
     if args.command == "envs":
-        print("\n".join(racebench.ENV_IDS))
+        try:
+            print("\n".join(racebench.ENV_IDS))
+            sys.stdout.flush()
+        except BrokenPipeError:  # `racebench envs | head`: the reader left, which is fine
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     elif args.command == "fly":
         result = fly(args.env, args.agent, args.seed, args.obs_mode)
         outcome = "SUCCESS" if result["success"] else f"FAILED ({result['crash_reason'] or 'time limit'})"
@@ -171,6 +177,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         lap = f", lap time {result['lap_time']:.2f} s" if result["success"] else ""
         print(f"{args.env} seed {args.seed} agent {args.agent}: {outcome}, gates {result['gates_passed']}{lap}")
     elif args.command == "scene":
+        suffix = Path(args.out).suffix.lower()
+        if suffix not in SCENE_FORMATS:
+            formats = ", ".join(SCENE_FORMATS)
+            raise SystemExit(f"racebench scene: --out {args.out!r}: not a mesh format; use one of {formats}")
         env = _make(args.env, obs_mode="state")
         env.reset(seed=args.seed)
         scene = env.unwrapped.scene
@@ -244,6 +254,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             written.append(plots.plot_track_3d(source, args.track_env, out / f"track_{args.track_env}.png"))
         for path in written:
             print(f"wrote {path}")
+        if not written:
+            raise SystemExit("racebench plot: no figure could be drawn from these results (see the reasons above)")
     elif args.command == "curves":
         from racebench.plots import plot_training_curves
 
@@ -285,7 +297,7 @@ def _summaries(results: Sequence[str], command: str):
 
 def _evaluate(args: argparse.Namespace) -> int:
     from racebench.agents import AgentLoadError
-    from racebench.evaluation import Evaluator
+    from racebench.evaluation import EVAL_SEED_BASE, Evaluator, load_records
 
     try:
         evaluator = Evaluator(
@@ -317,6 +329,12 @@ def _evaluate(args: argparse.Namespace) -> int:
     shown = summary.sort_values("env_id", key=lambda ids: ids.map(order))
     print(shown[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     print(f"wrote {evaluator.out_dir / 'episodes.csv'} and {evaluator.out_dir / 'summary.csv'}")
+    asked = load_records(evaluator.out_dir)
+    asked = asked[asked["env_id"].isin(evaluator.env_ids) & (asked["seed"] < EVAL_SEED_BASE + evaluator.episodes)]
+    failed = asked["crash_reason"].isin(["agent_error", "env_error"])
+    if len(asked) and failed.all():
+        first = str(asked.loc[failed, "error"].iloc[0]).strip().splitlines()[-1]
+        raise SystemExit(f"racebench evaluate: every episode failed with an agent or env error, e.g. {first}")
     return 0
 
 

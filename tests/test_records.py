@@ -368,6 +368,19 @@ def test_cli_errors_are_one_line_and_nonzero(tmp_path: Path) -> None:
         cli.main(["evaluate", "--agent", spec, "--envs", ENV, "--out", str(tmp_path / "p")])
     with pytest.raises(SystemExit, match="^racebench table: no evaluation records"):
         cli.main(["table", str(tmp_path / "missing")])
+    with pytest.raises(SystemExit, match="not a mesh format"):
+        cli.main(["scene", "--out", str(tmp_path / "scene.png")])
+    broken = tmp_path / "broken.py"
+    broken.write_text("class B:\n    obs_mode = 'state'\n    def reset(self, env=None, seed=None):\n        pass\n"
+                      "    def act(self, obs):\n        raise RuntimeError('no policy here')\n")  # fmt: skip
+    with pytest.raises(SystemExit, match="every episode failed.*no policy here"):
+        cli.main(["evaluate", "--agent", f"{broken}:B", "--trust-code", "--envs", ENV, "--episodes", "2",
+                  "--out", str(tmp_path / "b")])  # fmt: skip
+    modeless = tmp_path / "modeless.py"
+    modeless.write_text("class M:\n    def reset(self, env=None, seed=None):\n        pass\n"
+                        "    def act(self, obs):\n        return [0, 0, 0, 0]\n")  # fmt: skip
+    with pytest.raises(AgentLoadError, match="must declare obs_mode"):
+        load_agent(f"{modeless}:M", trust_code=True)
 
 
 # --------------------------------------------------------------- statistics

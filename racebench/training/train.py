@@ -676,6 +676,8 @@ def resume_seed(seed: int, timesteps: int, n_envs: int) -> int:
 
 
 def _plain(value: Any) -> Any:
+    if isinstance(value, float | np.floating) and not np.isfinite(value):
+        return None  # JSON has no NaN: a lap time without a success is null
     if isinstance(value, tuple):
         return [_plain(v) for v in value]
     if isinstance(value, dict):
