@@ -153,6 +153,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_distill.add_argument("--iterations", type=int, default=8, help="DAgger iterations (default 8)")
     p_distill.add_argument("--steps-per-iteration", type=int, default=20_000, help="env steps collected per iteration")
     p_distill.add_argument("--n-envs", type=int, default=16, help="envs flown side by side (default 16)")
+    p_distill.add_argument("--epochs", type=int, default=2, help="passes over the aggregate per iteration")
+    p_distill.add_argument("--max-samples", type=int, default=250_000, help="aggregate capacity (ring buffer)")
     p_distill.add_argument("--seed", type=int, default=0, help="training seed (< 1,000,000)")
     p_distill.add_argument("--out", default=None, help="run directory (default runs/vision-dagger-<track>-seed<seed>)")
     p_distill.add_argument("--eval-episodes", type=int, default=10, help="final evaluation episodes (0: none)")
@@ -213,7 +215,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         config = DaggerConfig(
             track=args.track, iterations=args.iterations, steps_per_iteration=args.steps_per_iteration,
-            n_envs=args.n_envs, seed=args.seed,
+            n_envs=args.n_envs, seed=args.seed, epochs=args.epochs, max_samples=args.max_samples,
         )  # fmt: skip
         try:
             config.validate()
