@@ -49,6 +49,7 @@ BUILTIN_VERSIONS: dict[str, int] = {"random": 1, "hover": 1, "planner": 1, "foll
 TRUSTED_CHECKPOINTS: dict[str, str] = {
     "a9648364a3a9c09e80189685eaecd34bfa47c1812bb7de8ab5a5cf00bd2bcd92": "vision-ppo-S/vision-ppo-S.zip",
     "3197e89e15de4f01be8cfb9e70d3595d9c50f3a15a5f99ea13b505429dfcc6b9": "state-ppo-S/state-ppo-S.zip",
+    "3275c4e846ca85e5265e0a26ee96a550e17145365d5c7b7430f5f37f3c748c20": "vision-dagger-S/vision-dagger-S.zip",
 }
 
 
