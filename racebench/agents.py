@@ -400,34 +400,59 @@ def _stack(observations: list[Any], obs_mode: str) -> Any:
 
 
 def export_onnx(model: Any, path: str | Path) -> Path:
-    """Export the deterministic actor of a feed-forward SB3 actor-critic policy to ONNX (see :class:`OnnxAgent`)."""
+    """Export the deterministic actor of an SB3 actor-critic policy to ONNX (see :class:`OnnxAgent`).
+
+    Feed-forward policies and racebench's recurrent GRU policies (``RecurrentGRUPolicy``: the actor's GRU
+    state becomes the ``hidden`` input and the second output). LSTM policies are refused: their cell state
+    has no place in the :class:`OnnxAgent` interface.
+    """
     import torch
+
+    from racebench.training.policies import LSTMShapedGRU
 
     policy = model.policy.to("cpu").eval()
     vision = _obs_mode_of(model.observation_space) == "vision"
+    gru = getattr(policy, "lstm_actor", None)
+    if gru is not None and not isinstance(gru, LSTMShapedGRU):
+        raise ValueError(
+            "export_onnx: recurrent policies must use racebench's GRU (an LSTM's cell state is not exported)"
+        )
+    if gru is not None and gru.num_layers != 1:
+        raise ValueError(f"export_onnx: a GRU of {gru.num_layers} layers is not supported (1 layer)")
 
     class Actor(torch.nn.Module):
         def __init__(self) -> None:
             super().__init__()
             self.policy = policy
 
-        def forward(self, state: torch.Tensor, depth: torch.Tensor | None = None) -> torch.Tensor:
+        def forward(self, state: torch.Tensor, *rest: torch.Tensor) -> Any:
+            depth, hidden = (rest[0], rest[1:]) if vision else (None, rest)
             obs = {"state": state, "depth": depth} if vision else state
             features = self.policy.extract_features(obs, self.policy.pi_features_extractor)
-            latent = self.policy.mlp_extractor.forward_actor(features)
-            return torch.clamp(self.policy.action_net(latent), -1.0, 1.0)
+            if gru is None:
+                return torch.clamp(self.policy.action_net(self.policy.mlp_extractor.forward_actor(features)), -1, 1)
+            output, next_hidden = torch.nn.GRU.forward(gru, features.unsqueeze(0), hidden[0].unsqueeze(0))
+            action = self.policy.action_net(self.policy.mlp_extractor.forward_actor(output[0]))
+            return torch.clamp(action, -1.0, 1.0), next_hidden[0]
 
-    state = torch.zeros(1, 17)
-    args: tuple = (state, torch.zeros(1, 1, 64, 64)) if vision else (state,)
-    names = ["state", "depth"] if vision else ["state"]
+    args: list[torch.Tensor] = [torch.zeros(1, 17)]
+    names = ["state"]
+    if vision:
+        args.append(torch.zeros(1, 1, 64, 64))
+        names.append("depth")
+    outputs = ["action"]
+    if gru is not None:
+        args.append(torch.zeros(1, gru.hidden_size))
+        names.append("hidden")
+        outputs.append("next_hidden")
     path = Path(path)
     torch.onnx.export(
         Actor(),
-        args,
+        tuple(args),
         str(path),
         input_names=names,
-        output_names=["action"],
-        dynamic_axes={n: {0: "batch"} for n in [*names, "action"]},
+        output_names=outputs,
+        dynamic_axes={n: {0: "batch"} for n in [*names, *outputs]},
         dynamo=False,
     )
     return path

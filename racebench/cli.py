@@ -12,6 +12,7 @@ from pathlib import Path
 import gymnasium as gym
 
 import racebench
+from racebench.records import sha256_file
 
 BUILTIN_FLY_AGENTS: tuple[str, ...] = ("follow", "hover", "random")
 SCENE_FORMATS: tuple[str, ...] = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")
@@ -159,6 +160,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_distill.add_argument("--out", default=None, help="run directory (default runs/vision-dagger-<track>-seed<seed>)")
     p_distill.add_argument("--eval-episodes", type=int, default=10, help="final evaluation episodes (0: none)")
 
+    p_onnx = sub.add_parser("export-onnx", help="export an SB3 checkpoint's deterministic actor to ONNX")
+    p_onnx.add_argument("checkpoint", help="SB3 / sb3-contrib .zip (feed-forward or racebench GRU policy)")
+    p_onnx.add_argument("--out", default=None, help="ONNX path (default: beside the checkpoint, .onnx)")
+    p_onnx.add_argument("--trust-code", action="store_true", help="allow a checkpoint outside the shipped ones")
+
     p_bench = sub.add_parser("bench", help="throughput: depth frames/s of both renderers, env steps/s, memory")
     p_bench.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds (a smoke test)")
     p_bench.add_argument("--out", default="bench.csv", help="CSV of every measurement (default bench.csv)")
@@ -210,6 +216,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             eval_episodes=args.eval_episodes, device=args.device,
         )  # fmt: skip
         print(json.dumps(result, indent=2))
+    elif args.command == "export-onnx":
+        from racebench.agents import AgentLoadError, SB3Agent, export_onnx
+
+        try:
+            agent = SB3Agent(args.checkpoint, trust_code=args.trust_code)
+            out = export_onnx(agent.model, args.out or Path(args.checkpoint).with_suffix(".onnx"))
+        except (AgentLoadError, ValueError) as exc:
+            raise SystemExit(f"racebench export-onnx: {exc}") from exc
+        print(f"wrote {out} (sha256 {sha256_file(out)})")
     elif args.command == "distill":
         from racebench.training.dagger import DaggerConfig, distill
 

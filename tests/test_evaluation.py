@@ -426,3 +426,24 @@ def test_the_in_process_evaluator_runs_torch_on_its_configured_threads(tmp_path:
         assert torch.get_num_threads() == 2  # restored afterwards
     finally:
         torch.set_num_threads(before)
+
+
+def test_the_gru_checkpoint_exports_to_onnx_and_flies_the_same(tmp_path: Path) -> None:
+    from racebench import cli
+
+    checkpoint = Path(__file__).parents[1] / "baselines/checkpoints/vision-ppo-S/vision-ppo-S.zip"
+    out = tmp_path / "vision-ppo.onnx"
+    assert cli.main(["export-onnx", str(checkpoint), "--out", str(out)]) == 0
+    torch_agent, onnx_agent = load_agent(str(checkpoint)), load_agent(str(out))
+    assert onnx_agent.obs_mode == "vision" and onnx_agent.hidden_size == 256
+    env = gym.make("RaceObs-S-v0")
+    obs, _ = env.reset(seed=EVAL_SEED_BASE)
+    torch_agent.reset()
+    onnx_agent.reset()
+    for _ in range(40):  # closed loop on the torch agent's actions: the hidden state is carried the same way
+        action = torch_agent.act(obs)
+        np.testing.assert_allclose(onnx_agent.act(obs), action, atol=1e-4)
+        obs, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            break
+    env.close()
