@@ -339,8 +339,12 @@ class OnnxAgent:
         path = Path(path)
         if not path.is_file():
             raise AgentLoadError(f"ONNX file {str(path)!r} does not exist")
+        options = ort.SessionOptions()
+        # One thread, as for torch (racebench.evaluation.torch_threads): an evaluation runs one process per core.
+        options.intra_op_num_threads = 1
+        options.inter_op_num_threads = 1
         try:
-            self.session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+            self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own exception types
             raise AgentLoadError(f"ONNX file {str(path)!r} could not be loaded: {exc}") from exc
         self.inputs = {i.name: i for i in self.session.get_inputs()}

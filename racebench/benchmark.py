@@ -382,21 +382,38 @@ def _bench_evaluation(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
 
     ratios: dict[str, float] = {}
     env_id, episodes, width = f"RaceObs-{s.track}-v0", s.eval_episodes, s.eval_batch
+    import tempfile
+
+    from racebench.agents import export_onnx
+
+    exported = Path(tempfile.mkdtemp(prefix="racebench-bench-"))
+    runs = []
     for kind, renderers in (("vision", ("pybullet", "raycast")), ("state", ("pybullet",))):
         path = _checkpoint(kind)
         if path is None:
             rec.echo(f"  (no committed {kind} checkpoint beside this install: evaluation rows skipped)")
             continue
-        agent = load_agent(str(path))
+        torch_agent = load_agent(str(path))
+        onnx_path = export_onnx(torch_agent.model, exported / f"{path.stem}.onnx")
+        runs += [
+            (kind, renderers, path.stem, torch_agent),
+            (kind, renderers, f"{path.stem} (ONNX)", load_agent(str(onnx_path))),
+        ]
+    for kind, renderers, stem, agent in runs:
         for renderer in renderers:
             log = _ActionLog(agent.obs_mode, renderer)
             jobs = [(env_id, EVAL_SEED_BASE + i) for i in range(episodes)]
-            run_lockstep(agent, jobs[:2], log.make_env, log.done, width=width)  # warm-up
+            # Warm-up, which also builds the envs: an evaluation process keeps them between its tasks.
+            pool: dict[str, list] = {}
+            run_lockstep(agent, jobs[:width], log.make_env, log.done, width=width, pool=pool)
             log.clear()
             with SingleTorchThread():
                 start = time.perf_counter()
-                run_lockstep(agent, jobs, log.make_env, log.done, width=width)
+                run_lockstep(agent, jobs, log.make_env, log.done, width=width, pool=pool)
                 lockstep = log.steps / (time.perf_counter() - start)
+            for envs in pool.values():
+                for env in envs:
+                    env.close()
             actions = log.actions
             env = gym.make(env_id, obs_mode=agent.obs_mode, renderer=renderer)
             start = time.perf_counter()
@@ -406,12 +423,12 @@ def _bench_evaluation(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
                     env.step(action)
             alone = sum(len(a) for a in actions.values()) / (time.perf_counter() - start)
             env.close()
-            label = f"{path.stem}, {renderer} depth" if kind == "vision" else path.stem
+            label = f"{stem}, {renderer} depth" if kind == "vision" else stem
             rec.add("evaluation", f"env alone, {label} episodes replayed", alone, "steps/s", f"{episodes} episodes")
             rec.add("evaluation", f"evaluation of {label}, lockstep {width}", lockstep, "steps/s", "1 process")
             ratios[label] = rec.add("evaluation", f"ratio evaluation / env alone, {label}", lockstep / alone, "x",
                                     "target >= 0.7")  # fmt: skip
-        if kind == "vision":
+        if kind == "vision" and "ONNX" not in stem:
             threads = torch.get_num_threads()
             probe = gym.make(env_id, obs_mode="vision", renderer="raycast")
             obs, _ = probe.reset(seed=EVAL_SEED_BASE)

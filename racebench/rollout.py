@@ -129,12 +129,14 @@ def run_lockstep(
     on_done: OnDone,
     width: int = 16,
     save_trajectories: bool = False,
+    pool: dict[str, list[gym.Env]] | None = None,
 ) -> None:
     """Fly every ``(env id, seed)`` of ``jobs``, ``width`` episodes side by side, one batched call per step.
 
     Every call passes exactly ``width`` observations (idle slots repeat an active one and their actions are
     dropped), so a slot's numbers never depend on how many episodes are left. ``make_env(env_id)`` builds a
-    ``RaceEnv`` (possibly wrapped); envs are reused across episodes of the same id. The envs are stepped as
+    ``RaceEnv`` (possibly wrapped); envs are reused across episodes of the same id, and across calls when the
+    caller passes a ``pool`` (env id → idle envs; the caller then closes them). The envs are stepped as
     :class:`~racebench.vector.RaceVectorEnv` steps them: ``advance`` each, then one depth render for all
     (ray caster), so each episode is exactly what ``env.step`` would give.
     """
@@ -143,7 +145,7 @@ def run_lockstep(
     if width < 1:
         raise ValueError(f"width must be >= 1, got {width}")
     pending = deque(jobs)
-    free: dict[str, list[gym.Env]] = {}
+    free: dict[str, list[gym.Env]] = {} if pool is None else pool
     made: list[gym.Env] = []
     slots: list[_Slot | None] = [None] * width
     unobserved: list[int] = []  # slots whose current observation is still to be made
@@ -245,5 +247,10 @@ def run_lockstep(
                 else:
                     unobserved.append(i)
     finally:
-        for env in made:
-            env.close()
+        if pool is None:
+            for env in made:
+                env.close()
+        else:  # envs still in a slot (an exception escaped) go back to the caller's pool too
+            for slot in slots:
+                if slot is not None:
+                    free.setdefault(slot.env_id, []).append(slot.env)
