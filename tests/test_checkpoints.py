@@ -3,8 +3,9 @@
 A learned policy's closed loop amplifies last-bit float differences between CPUs (another machine flew 7 of
 20 committed ``vision-ppo-S`` episodes differently: 13/20 successes against the committed 14/20), so a
 bit-identical replay is not a promise the benchmark can make for learned policies. The promise is the
-success rate: on any machine, a replay of the first :data:`REPLAY` evaluation seeds of ``RaceObs-S-v0`` must
-be consistent with the committed count (Fisher's exact test, false-fail rate at most
+success rate: on any machine, a replay of the first :data:`REPLAY` evaluation seeds of its track's main id
+(``RaceObs-<track>-v0``, the track the checkpoint's folder name ends with) must be consistent with the committed
+count (Fisher's exact test, false-fail rate at most
 :data:`~racebench.statistics.CONSISTENCY_ALPHA` = 0.1 %). With 100 committed and 40 replayed episodes, a
 committed count moved by :data:`DOCTORED` episodes or more, in either direction the range allows, is
 rejected (``test_a_doctored_claim_is_rejected``). Bit-identical replay is tested where it holds: built-in
@@ -25,16 +26,21 @@ from racebench.statistics import counts_consistent
 
 ROOT = Path(__file__).parents[1]
 CHECKPOINTS = sorted(ROOT.glob("baselines/checkpoints/*/*.zip"))
-ENV = "RaceObs-S-v0"
 REPLAY = 40  # replayed episodes per checkpoint (the first seeds of the protocol)
 DOCTORED = 33  # of 100 committed episodes: a claim moved this far is caught
 
 
+def main_env(checkpoint: Path) -> str:
+    """``RaceObs-<track>-v0`` of a checkpoint in ``baselines/checkpoints/<config>-<track>/``."""
+    return f"RaceObs-{checkpoint.parent.name.rsplit('-', 1)[1]}-v0"
+
+
 def committed_count(checkpoint: Path) -> tuple[int, int]:
-    """(successes, episodes) of the committed evaluation of ``checkpoint`` on :data:`ENV`, from its records."""
+    """(successes, episodes) of the committed evaluation of ``checkpoint`` on its main id, from its records."""
+    env_id = main_env(checkpoint)
     records = load_records(checkpoint.parent / "eval")
-    records = records[records["env_id"] == ENV]
-    assert len(records) >= 100, f"{checkpoint.parent.name}: commit at least 100 episodes of {ENV}"
+    records = records[records["env_id"] == env_id]
+    assert len(records) >= 100, f"{checkpoint.parent.name}: commit at least 100 episodes of {env_id}"
     assert set(records["policy_sha256"]) == {sha256_file(checkpoint)}, "evaluation of another file"
     assert set(records["env_version"]) == {ENV_VERSION}, "evaluated on another env version: re-evaluate"
     return int(records["success"].sum()), len(records)
@@ -48,7 +54,7 @@ def test_checkpoints_are_committed_and_trusted() -> None:
 @pytest.mark.parametrize("checkpoint", CHECKPOINTS, ids=lambda p: p.parent.name)
 def test_checkpoint_reproduces_its_committed_success_rate(checkpoint: Path, tmp_path: Path) -> None:
     k0, n0 = committed_count(checkpoint)
-    summary = Evaluator(str(checkpoint), [ENV], episodes=REPLAY, out_dir=tmp_path).run(progress=False)
+    summary = Evaluator(str(checkpoint), [main_env(checkpoint)], episodes=REPLAY, out_dir=tmp_path).run(progress=False)
     k1 = int(summary["successes"].iloc[0])
     verdict = counts_consistent((k0, n0), (k1, REPLAY))
     assert verdict.consistent, f"replayed {k1}/{REPLAY} against committed {k0}/{n0}: p = {verdict.p_value:.2g}"

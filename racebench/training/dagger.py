@@ -228,10 +228,11 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10) -> d
         rows.append({"iteration": k, "beta": beta, **flown, "samples": dataset.size, "loss": loss,
                      "wall_s": round(time.perf_counter() - started, 1)})  # fmt: skip
         atomic_write(out / "progress.csv", pd.DataFrame(rows).to_csv(index=False))
+        # The student after every iteration, so a killed run leaves its latest policy behind.
+        policy_model.save(out / f"vision-dagger-{config.track}.zip")
     for m in made:
         m.close()
     checkpoint = out / f"vision-dagger-{config.track}.zip"
-    policy_model.save(checkpoint)
     summary: dict[str, Any] = {
         "method": "dagger",
         "teacher": "planner",
