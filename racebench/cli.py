@@ -314,7 +314,7 @@ def _summaries(results: Sequence[str], command: str):
 
 def _evaluate(args: argparse.Namespace) -> int:
     from racebench.agents import AgentLoadError
-    from racebench.evaluation import EVAL_SEED_BASE, Evaluator, load_records
+    from racebench.evaluation import Evaluator
 
     try:
         evaluator = Evaluator(
@@ -346,8 +346,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     shown = summary.sort_values("env_id", key=lambda ids: ids.map(order))
     print(shown[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     print(f"wrote {evaluator.out_dir / 'episodes.csv'} and {evaluator.out_dir / 'summary.csv'}")
-    asked = load_records(evaluator.out_dir)
-    asked = asked[asked["env_id"].isin(evaluator.env_ids) & (asked["seed"] < EVAL_SEED_BASE + evaluator.episodes)]
+    asked = evaluator.selected  # the asked episodes, as just summarised
     failed = asked["crash_reason"].isin(["agent_error", "env_error"])
     if len(asked) and failed.all():
         first = str(asked.loc[failed, "error"].iloc[0]).strip().splitlines()[-1]

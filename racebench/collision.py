@@ -116,7 +116,6 @@ def _swept_contact(
     stack_t = np.empty((64, 2))
     stack_d = np.empty((64, 2))
     stack_k = np.empty((64, 2), dtype=np.int64)
-    top = 0
     stack_t[0, 0], stack_t[0, 1] = 0.0, 1.0
     stack_d[0, 0], stack_d[0, 1] = d0, d1
     stack_k[0, 0], stack_k[0, 1] = k0, k1

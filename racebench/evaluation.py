@@ -160,14 +160,14 @@ _WORKER: dict[str, Any] = {}
 
 
 def _worker_init(agent_spec: str, renderer: str, trust_code: bool, threads: int) -> None:
-    import torch  # only learned agents need it, and they import it anyway
-
-    torch.set_num_threads(threads)
     _close_pool()
     if not _WORKER.get("atexit"):
         atexit.register(_close_pool)  # a worker process's envs, at its exit
         _WORKER["atexit"] = True
     _WORKER.update(agent=load_agent(agent_spec, trust_code=trust_code), renderer=renderer, pool={})
+    torch = sys.modules.get("torch")  # imported by learned agents only; built-ins need not pay for it
+    if torch is not None:
+        torch.set_num_threads(threads)
 
 
 def _close_pool() -> None:
@@ -406,8 +406,8 @@ class Evaluator:
         self.elapsed = time.perf_counter() - started
         episodes = write_tables(self.out_dir)
         asked = {(e, s) for e in self.env_ids for s in eval_seeds(self.episodes)}
-        selected = episodes[[(e, s) in asked for e, s in zip(episodes["env_id"], episodes["seed"], strict=True)]]
-        return summarize(selected)
+        self.selected = episodes[[(e, s) in asked for e, s in zip(episodes["env_id"], episodes["seed"], strict=True)]]
+        return summarize(self.selected)
 
 
 def load_records(out_dir: str | Path) -> pd.DataFrame:
