@@ -165,3 +165,332 @@ class PlannerAgent:
         if np.linalg.norm(v_ref[:2]) > 0.5:
             yaw += float(np.clip(wrap_angle(math.atan2(v_ref[1], v_ref[0]) - yaw), -0.5, 0.5))
         return acceleration_to_ctbr(accel, yaw, state.rotation, env.params)
+
+
+# --------------------------------------------------------------------------- fast expert
+def scene_clearance(scene, points: np.ndarray) -> np.ndarray:
+    """Distance from points ``(M, 3)`` to the nearest gate bar, obstacle, the ground or an arena wall."""
+    lo, hi = np.asarray(scene.arena_low, dtype=float), np.asarray(scene.arena_high, dtype=float)
+    walls = np.minimum((points - lo).min(axis=-1), (hi - points).min(axis=-1))
+    return np.minimum(scene.distance(points), walls)
+
+
+def _segments_clear(scene, a: np.ndarray, b: np.ndarray, radius: float, step: float = 0.05) -> np.ndarray:
+    """For segments ``a[k] → b[k]``: whether every point is ``radius`` clear (samples ``step`` apart with
+    clearance ``≥ radius + step/2`` prove it: clearance is 1-Lipschitz)."""
+    lengths = np.linalg.norm(b - a, axis=1)
+    counts = np.maximum(np.ceil(lengths / step).astype(int) + 1, 2)
+    owner = np.repeat(np.arange(len(a)), counts)
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    t = (np.arange(len(owner)) - first[owner]) / (counts[owner] - 1)
+    samples = a[owner] + t[:, None] * (b - a)[owner]
+    ok = scene_clearance(scene, samples) >= radius + (lengths / (counts - 1))[owner] / 2.0
+    return np.logical_and.reduceat(ok, first)
+
+
+def pull_taut(scene, polyline: np.ndarray, radius: float) -> np.ndarray:
+    """String-pulling: from each kept vertex jump to the farthest later vertex joined by a ``radius``-clear
+    straight segment. The ends stay; the result is no longer and every new segment is proven clear."""
+    kept, i = [polyline[0]], 0
+    while i < len(polyline) - 1:
+        later = np.arange(i + 1, len(polyline))
+        clear = _segments_clear(scene, np.repeat(polyline[i : i + 1], len(later), axis=0), polyline[later], radius)
+        clear[0] = True  # the corridor's own segment is clear by construction
+        i = int(later[np.flatnonzero(clear)[-1]])
+        kept.append(polyline[i])
+    return np.array(kept)
+
+
+def clearance_gradient(scene, points: np.ndarray, eps: float = 0.02) -> np.ndarray:
+    """Unit direction in which clearance grows fastest at each point (central differences)."""
+    offsets = np.eye(3) * eps
+    grad = np.stack(
+        [scene_clearance(scene, points + o) - scene_clearance(scene, points - o) for o in offsets], axis=1
+    )
+    return grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-9)
+
+
+def relax(
+    scene,
+    polyline: np.ndarray,
+    min_clearance: float,
+    wanted_clearance: float,
+    gate_clearance: float = 0.4,
+    gate_floor: float = 0.32,
+    spacings: tuple[float, ...] = (0.4, 0.2),
+    iterations: int = 600,
+    bending: float = 0.04,
+    tension: float = 0.05,
+    push: float = 0.1,
+) -> np.ndarray:
+    """Smooth a clear polyline into a racing line: an elastic band whose points descend the bending energy
+    (``Σ|Δ²p|²``, which moves corners outward and spreads turns over a longer arc) plus a little length
+    (tension) and, closer than ``wanted_clearance`` to the scene (``gate_clearance`` within 0.8 m of a gate
+    centre: the opening must still allow oblique crossings, which round a turn), a push away from it. A point's move is
+    not taken if it would bring it closer than ``min_clearance`` to the scene. Moves are small, so the
+    path keeps threading the same gate openings; the two first and last points stay fixed. Coarse
+    spacing first (turns spread fast), then fine."""
+    gate_centres = np.array([g.center for g in scene.gates])
+    points = polyline
+    for spacing in spacings:
+        points, _ = resample(points, spacing)
+        for it in range(iterations):
+            if it % 25 == 0 and it:
+                points, _ = resample(points, spacing)
+            if len(points) < 5:
+                break
+            step = np.zeros_like(points)
+            fourth = points[:-4] - 4 * points[1:-3] + 6 * points[2:-2] - 4 * points[3:-1] + points[4:]
+            step[2:-2] -= bending * fourth
+            step[1:-1] += tension * (0.5 * (points[:-2] + points[2:]) - points[1:-1])
+            # Near a gate the wanted clearance is what the opening allows a little off its centre.
+            clearance = scene_clearance(scene, points)
+            at_gate = np.any(np.linalg.norm(points[:, None, :] - gate_centres[None], axis=2) < 0.8, axis=1)
+            wanted = np.where(at_gate, gate_clearance, wanted_clearance)
+            near = np.flatnonzero(clearance < wanted)
+            if len(near):
+                step[near] += push * (wanted - clearance)[near, None] * clearance_gradient(scene, points[near])
+            step[[0, 1, -2, -1]] = 0.0
+            # Cap each move well below the thinnest gate bar plus twice the clearance, so no point can hop
+            # across a bar in one step: the path stays threaded through every opening it threaded before.
+            length = np.linalg.norm(step, axis=1, keepdims=True)
+            step *= np.minimum(1.0, 0.05 / np.maximum(length, 1e-12))
+            target = points + step
+            # A move counts only if the point and the midpoints of its two segments stay clear: the
+            # samples alone could let a segment cut a corner between them.
+            # Inside a gate zone the floor is higher: the path crosses the opening away from its bars.
+            midpoints = scene_clearance(scene, 0.5 * (target[:-1] + target[1:])) >= min_clearance
+            floor = np.where(at_gate, max(min_clearance, gate_floor), min_clearance)
+            after = scene_clearance(scene, target)
+            ok = (after >= floor) | (after >= np.minimum(clearance, floor))
+            ok[1:] &= midpoints
+            ok[:-1] &= midpoints
+            points[ok] = target[ok]
+    return points
+
+
+def _arc_length_spline(points: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Samples ``spacing`` m apart on a cubic spline through ``points``: positions, arc length, unit
+    tangents and curvature vectors (``d²r/ds²``)."""
+    from scipy.interpolate import CubicSpline
+
+    chord = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    spline = CubicSpline(chord, points, axis=0, bc_type="natural")
+    u = np.linspace(0.0, chord[-1], int(math.ceil(chord[-1] / (spacing / 4))) + 1)
+    fine = spline(u)
+    s_fine = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(fine, axis=0), axis=1))])
+    s = np.arange(0.0, s_fine[-1], spacing)
+    u_s = np.interp(s, s_fine, u)
+    d1, d2 = spline(u_s, 1), spline(u_s, 2)
+    speed = np.linalg.norm(d1, axis=1, keepdims=True)
+    tangent = d1 / speed
+    curvature = (d2 - np.sum(d2 * tangent, axis=1, keepdims=True) * tangent) / speed**2
+    return spline(u_s), s, tangent, curvature
+
+
+def minimum_time_speeds(
+    arc: np.ndarray,
+    curvature: np.ndarray,
+    max_accel: float,
+    max_speed: float,
+    start_speed: float,
+    drag: float = 0.0,
+) -> np.ndarray:
+    """Fastest speed profile along a path whose total acceleration (tangential and centripetal) stays within
+    ``max_accel``: the classic forward/backward pass over the friction circle. ``drag`` (1/m) eats into
+    the forward budget as ``drag · v²``."""
+    kappa = np.linalg.norm(curvature, axis=1)
+    v = np.minimum(np.sqrt(max_accel / np.maximum(kappa, 1e-9)), max_speed)
+    v[0] = min(v[0], start_speed)
+    ds = np.diff(arc)
+    for i in range(len(v) - 1):
+        lateral = v[i] ** 2 * kappa[i]
+        along = math.sqrt(max(max_accel**2 - lateral**2, 0.0)) - drag * v[i] ** 2
+        v[i + 1] = min(v[i + 1], math.sqrt(max(v[i] ** 2 + 2.0 * max(along, 0.0) * ds[i], 0.0)))
+    for i in range(len(v) - 2, -1, -1):
+        lateral = v[i + 1] ** 2 * kappa[i + 1]
+        along = math.sqrt(max(max_accel**2 - lateral**2, 0.0))
+        v[i] = min(v[i], math.sqrt(v[i + 1] ** 2 + 2.0 * along * ds[i]))
+    return v
+
+
+def limit_jerk(speeds: np.ndarray, arc: np.ndarray, window: float) -> np.ndarray:
+    """A speed profile never above ``speeds`` whose acceleration changes over ``window`` seconds rather
+    than instantly: a moving minimum, then a moving average, both over ``window`` of travel time.
+
+    Going from full acceleration to full braking means tilting the thrust through ~90°, which the body
+    rate limits spread over a fraction of a second; a bang-bang profile would ask for it at once."""
+    ds = float(arc[1] - arc[0])
+    n = len(speeds)
+    # The take-off from rest is left alone (floor of 1 m/s): its zero would otherwise spread down the path.
+    floor = np.maximum(speeds, 1.0)
+    half = np.maximum(1, np.round(0.5 * window * floor / ds).astype(int))
+    lo, hi = np.maximum(np.arange(n) - half, 0), np.minimum(np.arange(n) + half + 1, n)
+    eroded = np.array([floor[a:b].min() for a, b in zip(lo, hi)])
+    csum = np.concatenate([[0.0], np.cumsum(eroded)])
+    # erosion then averaging over the same window: the average of values below the profile stays below it
+    return np.minimum((csum[hi] - csum[lo]) / (hi - lo), speeds)
+
+
+def passes_gates(path: np.ndarray, gates) -> bool:
+    """Whether the polyline crosses every gate's opening in order (the env's own passage test)."""
+    k = 0
+    for gate in gates:
+        while k < len(path) - 1 and not gate.passed_by(path[k], path[k + 1]):
+            k += 1
+        if k == len(path) - 1:
+            return False
+        k += 1
+    return True
+
+
+class FastPlannerAgent:
+    """Privileged fast expert: a taut, smoothed path through the corridor, flown at the fastest speed
+    profile the airframe's thrust allows, tracked with acceleration feedforward.
+
+    Args:
+        max_accel: acceleration budget of the speed profile, m/s² (the airframe tops out near 14 m/s² in
+            every direction at full tilt: 24.1 m/s² of thrust less gravity; the rest is tracking headroom).
+        max_speed: speed cap, m/s.
+        clearance: distance the smoothed path keeps from all geometry, m.
+    """
+
+    name = "planner-fast"
+    obs_mode = "state"
+    privileged = True
+
+    def __init__(
+        self,
+        max_accel: float = 10.0,
+        max_speed: float = 12.0,
+        clearance: float = 0.3,
+        wanted_clearance: float = 0.6,
+        position_gain: float = 8.0,
+        velocity_gain: float = 5.0,
+        anticipation: float = 0.12,
+        attitude_gain: float = 10.0,
+        integral_gain: float = 4.0,
+        flip_time: float = 0.25,
+        min_path_clearance: float = 0.17,
+    ) -> None:
+        self.max_accel = max_accel
+        self.max_speed = max_speed
+        self.clearance = clearance
+        self.wanted_clearance = wanted_clearance
+        self.position_gain = position_gain
+        self.velocity_gain = velocity_gain
+        self.anticipation = anticipation
+        self.attitude_gain = attitude_gain
+        self.integral_gain = integral_gain
+        self.flip_time = flip_time
+        self.min_path_clearance = min_path_clearance
+        self.corridor_clearances = (clearance + 0.1, clearance, 0.24, 0.21)
+        self.drag_per_mass = 0.03 / 0.58  # the airframe's forward drag, for the speed profile
+        self.env = None
+        self._fallback = PlannerAgent()
+        self.path: np.ndarray | None = None
+
+    def _taut_corridor(self, scene, start: np.ndarray, clearance: float, approach: float = 0.25) -> np.ndarray | None:
+        """The corridor at ``clearance``, pulled taut between gate centres, run on past the finish."""
+        corridor = find_corridor(scene, clearance, start=start, approach=approach)
+        if corridor is None:
+            return None
+        # Pin each gate centre: a straight shortcut between two gates could otherwise pass beside the one
+        # in between. The corridor runs through each gate along c - a·n → c + a·n.
+        pieces, begin = [], 0
+        for gate in scene.gates:
+            front = gate.center - approach * gate.normal
+            k = begin + int(np.flatnonzero(np.all(np.abs(corridor[begin:] - front) < 1e-9, axis=1))[0])
+            pieces.append(np.vstack([corridor[begin : k + 1], gate.center]))
+            corridor = np.vstack([corridor[: k + 1], gate.center, corridor[k + 1 :]])
+            begin = k + 1
+        pieces.append(corridor[begin:])
+        taut = [pull_taut(scene, p, clearance) for p in pieces if len(p) >= 2]
+        polyline = np.vstack([taut[0]] + [t[1:] for t in taut[1:]])
+        # Run on past the finish line: the lap ends at the last gate's plane, the tracker needs road ahead.
+        return np.vstack([polyline, polyline[-1] + 2.0 * scene.gates[-1].normal])
+
+    def plan(self, scene, start: np.ndarray, start_speed: float = 0.0) -> bool:
+        """Plan for ``scene`` from ``start``; ``False`` when no candidate path passes the final checks.
+
+        Candidates come from corridors at several clearances: a wide one can force a detour (even a
+        hairpin behind a gate) that a narrower one avoids, so the shortest taut candidate is smoothed
+        first, and the next one if the smoothed path fails its checks."""
+        candidates = []
+        for clearance in self.corridor_clearances:
+            polyline = self._taut_corridor(scene, start, clearance)
+            if polyline is not None:
+                length = float(np.linalg.norm(np.diff(polyline, axis=0), axis=1).sum())
+                candidates.append((length - clearance, clearance, polyline))  # ties go to the wider berth
+        last = scene.gates[-1]
+        for _, clearance, polyline in sorted(candidates, key=lambda c: c[0]):
+            smooth = relax(scene, polyline, min(self.clearance, clearance), self.wanted_clearance)
+            path, arc, tangent, curvature = _arc_length_spline(smooth, 0.05)
+            # Check what will be flown: every opening in order, and clear of everything up to the finish.
+            if not passes_gates(path, scene.gates):
+                continue
+            finish = int(np.argmax((path - last.center) @ last.normal >= 0.0))
+            if scene_clearance(scene, path[: finish + 1]).min() < self.min_path_clearance:
+                continue
+            self.path, self.arc, self.tangent, self.curvature = path, arc, tangent, curvature
+            drag = self.drag_per_mass
+            speeds = minimum_time_speeds(arc, curvature, self.max_accel, self.max_speed, start_speed, drag)
+            self.speeds = limit_jerk(speeds, arc, self.flip_time)
+            self._index = 0
+            self._integral = np.zeros(3)
+            return True
+        return False
+
+    def reset(self, env=None, seed: int | None = None) -> None:
+        """Plan for the episode that ``env`` (an unwrapped :class:`~racebench.env.RaceEnv`) has just reset."""
+        if env is None:
+            raise ValueError("FastPlannerAgent is privileged: reset(env) needs the unwrapped RaceEnv")
+        self.env = env
+        if not self.plan(env.scene, env.drone.position, float(np.linalg.norm(env.drone.velocity))):
+            self.path = None
+            self._fallback.reset(env)
+
+    def act(self, obs=None) -> np.ndarray:
+        """CTBR action for the env's current state."""
+        env = self.env
+        if self.path is None:
+            return self._fallback.act(obs)
+        state = env.drone
+        pos, vel = state.position, state.velocity
+        window = self.path[self._index : self._index + 20]
+        self._index += int(np.argmin(np.linalg.norm(window - pos, axis=1)))
+        i = self._index
+        t = self.tangent[i]
+        error = self.path[i] - pos
+        error -= (error @ t) * t  # cross-track only: progress is the projection
+        v_ref = max(self.speeds[i], 1.0) * t  # never stall at the start, where the profile is 0
+        # Feedforward from slightly ahead: thrust direction lags the command by the attitude loop.
+        j = min(int(np.searchsorted(self.arc, self.arc[i] + self.anticipation * max(self.speeds[i], 1.0))), len(self.arc) - 2)
+        ds = self.arc[j + 1] - self.arc[j]
+        along = (self.speeds[j + 1] ** 2 - self.speeds[j] ** 2) / (2.0 * ds)
+        feedforward = self.speeds[j] ** 2 * self.curvature[j] + along * self.tangent[j]
+        # Cancel the airframe's quadratic drag (body axes) so the loops only fix what the model misses.
+        rot = state.rotation
+        v_body = rot.T @ vel
+        drag = rot @ (np.asarray(env.params.drag_coefficients) * v_body * np.abs(v_body)) / env.params.mass
+        dt = 1.0 / env.control_freq
+        self._integral = np.clip(self._integral + error * dt, -0.3, 0.3)
+        accel = (
+            feedforward
+            + drag
+            + self.position_gain * error
+            + self.integral_gain * self.position_gain * self._integral
+            + self.velocity_gain * (v_ref - vel)
+        )
+        yaw = math.atan2(state.rotation[1, 0], state.rotation[0, 0])
+        # Face where the path goes over the next ~1.5 m, not its local wiggles.
+        heading = self.path[min(i + 30, len(self.path) - 1)] - pos
+        if np.linalg.norm(heading[:2]) > 0.3:
+            yaw += float(np.clip(wrap_angle(math.atan2(heading[1], heading[0]) - yaw), -0.5, 0.5))
+        action = acceleration_to_ctbr(accel, yaw, rot, env.params, self.attitude_gain)
+        # Altitude first: while the body turns toward a new thrust direction, the projection of the wanted
+        # force on body z drops and the drone would sink; keep the vertical component instead.
+        if rot[2, 2] > 0.3:
+            vertical = env.params.mass * (accel[2] + env.params.gravity) / rot[2, 2]
+            action[0] = max(action[0], min(2.0 * vertical / env.params.max_thrust - 1.0, 1.0))
+        return action
