@@ -177,7 +177,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_bench.add_argument("--track", default="S", choices=["S", "J", "Circle"])
     p_bench.add_argument("--num-envs", type=int, default=None, help="envs of each vector-env run (default 32)")
 
+    from racebench.leaderboard.command import add_parser as add_leaderboard_parser
+
+    add_leaderboard_parser(sub)
+
     args = parser.parse_args(argv)
+    if args.command == "leaderboard":
+        from racebench.leaderboard.command import run as run_leaderboard
+
+        return run_leaderboard(args)
     if args.command == "envs":
         try:
             print("\n".join(racebench.ENV_IDS))
