@@ -284,7 +284,7 @@ def _entry_page(entry: Entry, data: dict[str, Any], accepted: Sequence[str]) -> 
     rows += f"<tr><th>policy_sha256</th><td><code>{_esc(meta['policy_sha256'])}</code></td></tr>"
     records = entry.records
     facts = {
-        "records": len(records),
+        "record files": len(records),
         "seed sets": ", ".join(sorted({r["seed_set"] for r in records})),
         "env version": ", ".join(sorted({str(r["env_version"]) for r in records})),
         "renderers": ", ".join(sorted({r["renderer"] for r in records})),
