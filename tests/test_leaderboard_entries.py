@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
 import yaml
-from leaderboard_fixtures import ENV, GC_AGENT, SALT, add, evaluate, make_repo, meta, write_hover_onnx
+from leaderboard_fixtures import ENV, GC_AGENT, SALT, add, evaluate, make_repo, meta, write_hover_onnx, write_records
 
 from racebench import cli
 from racebench.agents import TRUSTED_CHECKPOINTS
+from racebench.evaluation import EVAL_SEED_BASE
 from racebench.leaderboard.entries import (
     DEFAULT_LEADERBOARD,
     MAIN_IDS,
@@ -48,6 +50,7 @@ def board(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def tiers(board: Path) -> dict[str, str]:
+    """Entry name -> computed tier, with the fixture leaderboard's accepted salts."""
     accepted = load_config(board)["private_salt_sha256"]
     return {e.name: e.tier(accepted) for e in load_entries(board)}
 
@@ -150,3 +153,12 @@ def test_every_builtin_reference_and_committed_checkpoint_is_an_entry() -> None:
     for entry in entries.values():
         assert entry.meta["policy_sha256"] == policy_sha256(entry.meta["policy"], ROOT)
         assert entry.records and all(r["policy_sha256"] == entry.meta["policy_sha256"] for r in entry.records)
+
+
+def test_cherry_picked_episodes_are_refused(tmp_path: Path) -> None:
+    board = make_repo(tmp_path)
+    folder = write_records(tmp_path / "results" / "hover", "hover", ENV, 0, 3)
+    first = next(p for p in (folder / "records").glob("*.json") if json.loads(p.read_text())["seed"] == EVAL_SEED_BASE)
+    first.unlink()  # "flew 3, committed the 2 I liked"
+    with pytest.raises(EntryError, match=r"not the first 2 seeds .*missing e\.g\. \[1000000\].*none picked"):
+        add(board, "hover", "hover", [folder])

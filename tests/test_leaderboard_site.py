@@ -34,6 +34,7 @@ class Page(HTMLParser):
         self.data = ""
 
     def handle_starttag(self, tag: str, attrs: list) -> None:
+        """Collect links; open tables, rows and cells."""
         attrs = dict(attrs)
         for key in ("href", "src"):
             if key in attrs:
@@ -49,6 +50,7 @@ class Page(HTMLParser):
             self.script = attrs.get("type") == "application/json"
 
     def handle_endtag(self, tag: str) -> None:
+        """Close cells (text and bold flag), tables and scripts."""
         if tag == "td" and self.cell is not None:
             self.tables[self.table][-1].append((" ".join("".join(self.cell).split()), self.bold))
             self.cell = None
@@ -58,6 +60,7 @@ class Page(HTMLParser):
             self.script = False
 
     def handle_data(self, data: str) -> None:
+        """Cell text and the embedded JSON."""
         if self.cell is not None:
             self.cell.append(data + " ")
         if self.script:
@@ -65,6 +68,7 @@ class Page(HTMLParser):
 
 
 def parse(path: Path) -> Page:
+    """Parse one HTML file of the site."""
     page = Page()
     page.feed(path.read_text())
     return page

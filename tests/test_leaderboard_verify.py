@@ -12,11 +12,12 @@ from racebench import cli
 from racebench.leaderboard.entries import Cell, load_entry
 from racebench.leaderboard.seeds import SALT_ENV
 from racebench.leaderboard.verify import LAP_ABS_TOL_S, check_cell, lap_tolerance, verify_entry
-from racebench.records import env_facts, seal
+from racebench.records import env_facts, name_of, seal
 from racebench.statistics import detectable_doctoring
 
 
 def cell(k: int, n: int, laps: tuple[float, ...] = ()) -> Cell:
+    """A public cell of ``k`` successes in ``n`` episodes with these laps."""
     return Cell(ENV, "public", n, k, laps)
 
 
@@ -40,6 +41,7 @@ def test_the_lap_check_allows_noise_and_catches_a_shift() -> None:
 
 @pytest.fixture()
 def repo(tmp_path: Path) -> Path:
+    """A leaderboard of hover (8 flown episodes) and the planner (3), on the obstacle-free level 1."""
     board = make_repo(tmp_path)
     evaluate("hover", tmp_path / "results" / "hover", 8)
     evaluate("planner", tmp_path / "results" / "planner", 3)
@@ -88,3 +90,11 @@ def test_private_cells_need_the_salt_they_were_made_with(tmp_path: Path, monkeyp
     monkeypatch.setenv(SALT_ENV, SALT)
     checks = verify_entry(entry, tmp_path / "replay", episodes=1)
     assert [(c.seed_set, c.committed, c.replayed, c.ok) for c in checks] == [("private", (0, 2), (0, 1), True)]
+    # A private record moved to another seed of the range (re-sealed, renamed): only the salt can tell.
+    path = sorted((tmp_path / "results" / "hover-private" / "records").glob("*.json"))[0]
+    moved = seal({**json.loads(path.read_text()), "seed": 10**12 + 12345})
+    path.unlink()
+    (path.parent / name_of(moved)).write_text(json.dumps(moved))
+    entry = load_entry(board / "hover")  # in range, so valid without the salt
+    with pytest.raises(ValueError, match="none picked"):
+        verify_entry(entry, tmp_path / "replay")

@@ -285,7 +285,30 @@ def load_entry_records(meta: dict[str, Any], root: Path) -> list[dict[str, Any]]
                 raise EntryError(f"{name}: episode {path.name} is in two of its records folders")
             seen.add(path.name)
             records.append(record)
+    check_seed_prefixes(name, records)
     return records
+
+
+def check_seed_prefixes(name: str, records: Sequence[dict[str, Any]], salt: str | None = None) -> None:
+    """Each public cell must hold exactly the first ``n`` seeds of the protocol (private ones too, given the salt).
+
+    Otherwise a submitter could fly 200 episodes and commit the best 50 (cherry-picking), or drop the crashes.
+    """
+    from racebench.leaderboard.seeds import seeds_for
+
+    cells: dict[tuple[str, str, str], set[int]] = {}
+    for record in records:
+        cells.setdefault((record["env_id"], record["seed_set"], record["renderer"]), set()).add(record["seed"])
+    for (env_id, seed_set, renderer), seeds in sorted(cells.items()):
+        if seed_set == "private" and salt is None:
+            continue  # membership of a private set needs its salt: checked by verify
+        expected = set(seeds_for(seed_set, len(seeds), salt))
+        if seeds != expected:
+            missing = sorted(expected - seeds)[:3]
+            raise EntryError(
+                f"{name}: the {seed_set}-seed episodes of {env_id} ({renderer}) are not the first {len(seeds)} seeds "
+                f"of the protocol (missing e.g. {missing}): every episode flown must be committed, none picked"
+            )
 
 
 def load_entry(folder: str | Path, root: str | Path | None = None) -> Entry:

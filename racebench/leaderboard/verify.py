@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from racebench.leaderboard.entries import Cell, Entry, EntryError, summarize_cells
+from racebench.leaderboard.entries import Cell, Entry, EntryError, check_seed_prefixes, summarize_cells
 from racebench.leaderboard.seeds import salt_from_env, salt_sha256
 from racebench.statistics import CONSISTENCY_ALPHA, counts_consistent
 
@@ -147,6 +147,7 @@ def verify_entry(
                     f"{entry.name}: its private records were made with the salt of sha256 {salt_hash[:12]}…, "
                     f"not the one given (sha256 {salt_sha256(group_salt)[:12]}…)"
                 )
+            check_seed_prefixes(entry.name, records, group_salt)  # with the salt, private seeds can be checked too
         folder = Path(out_dir) / entry.name / f"{seed_set}-{renderer}" / (salt_hash[:12] if salt_hash else "")
         for env_id, cell in summarize_cells(records).items():
             n = min(cell.n, episodes) if episodes else cell.n
