@@ -37,7 +37,11 @@ GC_AGENT = textwrap.dedent(
         def reset(self, env=None, seed=None):
             from racebench.env import RaceEnv
 
-            self.env = next(o for o in gc.get_objects() if isinstance(o, RaceEnv) and o.scene is not None)
+            # The live env of this episode: reset with this episode's seed, not closed (old envs linger in memory).
+            self.env = next(
+                o for o in gc.get_objects()
+                if isinstance(o, RaceEnv) and not getattr(o, "_closed", False) and o.np_random_seed == seed
+            )
 
         def act(self, obs):
             return self.follower.act_privileged(self.env)
