@@ -97,6 +97,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=16,
         help="episodes each process flies in lockstep, one batched policy call per step (SB3/ONNX; default 16)",
     )
+    p_eval.add_argument(
+        "--seed-set",
+        default="public",
+        choices=("public", "private"),
+        help="public: seeds 1,000,000 + i (default); private: derived from the secret salt in $RACEBENCH_PRIVATE_SALT",
+    )
 
     p_table = sub.add_parser("table", help="the paper's Table II, III or IV from result directories / summary CSVs")
     p_table.add_argument("results", nargs="+", help="result directories or summary.csv files")
@@ -171,7 +177,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_bench.add_argument("--track", default="S", choices=["S", "J", "Circle"])
     p_bench.add_argument("--num-envs", type=int, default=None, help="envs of each vector-env run (default 32)")
 
+    from racebench.leaderboard.command import add_parser as add_leaderboard_parser
+
+    add_leaderboard_parser(sub)
+
     args = parser.parse_args(argv)
+    if args.command == "leaderboard":
+        from racebench.leaderboard.command import run as run_leaderboard
+
+        return run_leaderboard(args)
     if args.command == "envs":
         try:
             print("\n".join(racebench.ENV_IDS))
@@ -329,6 +343,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             force=args.force,
             renderer=args.renderer,
             batch=args.batch,
+            seed_set=args.seed_set,
         )
     except (AgentLoadError, ValueError) as exc:
         raise SystemExit(f"racebench evaluate: {exc}") from exc
@@ -336,6 +351,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     total = len(evaluator.env_ids) * evaluator.episodes
     identity = evaluator.identity
     what = f"{identity.kind}, sha256 {identity.sha256[:12]}, env version {racebench.ENV_VERSION}"
+    if evaluator.seed_set != "public":
+        what += f", {evaluator.seed_set} seeds of salt sha256 {evaluator.salt_sha256[:12]}"
     print(
         f"{evaluator.agent_name} ({what}): "
         f"{total - todo}/{total} episodes already done in {evaluator.out_dir}, {todo} to run"

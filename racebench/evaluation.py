@@ -110,10 +110,14 @@ class RecordWriter:
     identity: PolicyIdentity
     agent_name: str
     renderer: str
+    seed_set: str = SEED_SET
+    salt_sha256: str | None = None  # of the private seed set's salt; None for public seeds
 
     def name(self, env_id: str, seed: int) -> str:
         """File name of the record of ``(env_id, seed)``."""
-        return record_name(self.identity.sha256, env_id, ENV_VERSION, SEED_PROTOCOL, SEED_SET, seed, self.renderer)
+        return record_name(
+            self.identity.sha256, env_id, ENV_VERSION, SEED_PROTOCOL, self.seed_set, seed, self.renderer
+        )
 
     def write(self, env_id: str, seed: int, result: dict[str, Any], flown: dict | None) -> str:
         """Seal and atomically write one episode's record; return its file name."""
@@ -134,12 +138,13 @@ class RecordWriter:
                 "renderer": self.renderer,
                 "seed": seed,
                 "seed_protocol": SEED_PROTOCOL,
-                "seed_set": SEED_SET,
+                "seed_set": self.seed_set,
                 **result,
                 "racebench_version": racebench.__version__,
                 "git_commit": commit,
                 "git_dirty": dirty,
                 **host_info(),
+                **({"seed_salt_sha256": self.salt_sha256} if self.salt_sha256 else {}),
             }
         )
         name = self.name(env_id, seed)
@@ -220,10 +225,14 @@ class MixedResultsError(ValueError):
     """An output directory holds records of another policy, label or env version than the one asked."""
 
 
-def default_out_dir(agent_name: str, identity: PolicyIdentity) -> Path:
-    """``runs/eval/<agent>-<first 10 hex of the policy sha256>``: fresh per policy, outside version control."""
+def default_out_dir(agent_name: str, identity: PolicyIdentity, seed_set: str = SEED_SET) -> Path:
+    """``runs/eval/<agent>-<first 10 hex of the policy sha256>``: fresh per policy, outside version control.
+
+    A seed set other than the public one is appended (``-private``): one folder holds one seed set.
+    """
     safe = re.sub(r"[^A-Za-z0-9._-]+", "_", agent_name)
-    return Path("runs") / "eval" / f"{safe}-{identity.sha256[:10]}"
+    suffix = "" if seed_set == SEED_SET else f"-{seed_set}"
+    return Path("runs") / "eval" / f"{safe}-{identity.sha256[:10]}{suffix}"
 
 
 def torch_threads() -> int:
@@ -272,6 +281,9 @@ class Evaluator:
         force: discard every record already in ``out_dir`` (whatever produced it) and evaluate afresh.
         batch: episodes a process flies in lockstep with one batched policy call per step (agents that
             support it: SB3 and ONNX); 1 flies one episode at a time.
+        seed_set: ``"public"`` (``EVAL_SEED_BASE + i``) or ``"private"``: seeds derived from the secret salt
+            ``salt`` or, when not given, the environment variable ``RACEBENCH_PRIVATE_SALT``
+            (:mod:`racebench.leaderboard.seeds`); the records store the salt's hash, never the salt.
     """
 
     def __init__(
@@ -287,8 +299,11 @@ class Evaluator:
         trust_code: bool = False,
         force: bool = False,
         batch: int = DEFAULT_BATCH,
+        seed_set: str = SEED_SET,
+        salt: str | None = None,
     ) -> None:
         from racebench.env import RENDERERS
+        from racebench.leaderboard.seeds import salt_from_env, salt_sha256, seeds_for
 
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -306,15 +321,23 @@ class Evaluator:
         self.save_trajectories = save_trajectories
         self.renderer = renderer
         self.trust_code = trust_code
+        self.seed_set = seed_set
+        if seed_set == "private" and salt is None:
+            salt = salt_from_env()  # before loading anything: a missing secret is a one-line error
+        self.seeds = seeds_for(seed_set, episodes, salt, SEED_PROTOCOL)
+        self.salt_sha256 = salt_sha256(salt) if seed_set == "private" else None
         probe = load_agent(agent_spec, trust_code=trust_code)  # fail fast, in this process, on a bad spec
         self.identity = policy_identity(agent_spec)
         if getattr(probe, "sha256", self.identity.sha256) != self.identity.sha256:
             raise ValueError(f"{agent_spec!r} changed while it was being loaded")
         self.agent_name = agent_name or probe.name
         self.privileged = self.identity.privileged
-        self.out_dir = Path(out_dir) if out_dir is not None else default_out_dir(self.agent_name, self.identity)
+        default = default_out_dir(self.agent_name, self.identity, seed_set)
+        self.out_dir = Path(out_dir) if out_dir is not None else default
         self.records_dir = self.out_dir / "records"
-        self.writer = RecordWriter(self.out_dir, self.identity, self.agent_name, renderer)
+        self.writer = RecordWriter(
+            self.out_dir, self.identity, self.agent_name, renderer, seed_set, self.salt_sha256
+        )
         if force:
             self._clear()
         self.done = self._scan()
@@ -335,14 +358,21 @@ class Evaluator:
             except InvalidRecordError as exc:
                 self._set_aside(path, str(exc))
                 continue
-            theirs = (record["policy_sha256"], record["env_version"], record["seed_set"], record["renderer"])
-            if theirs != (self.identity.sha256, ENV_VERSION, SEED_SET, self.renderer):
+            theirs = (record["policy_sha256"], record["env_version"], record["renderer"])
+            if theirs != (self.identity.sha256, ENV_VERSION, self.renderer):
                 raise MixedResultsError(
                     f"{self.out_dir} holds results of another policy, env version or renderer "
                     f"({record['policy_source']!r}, sha256 {record['policy_sha256'][:12]}, env version "
                     f"{record['env_version']}, {record['renderer']} depth); this is {self.identity.source!r}, "
                     f"sha256 {self.identity.sha256[:12]}, env version {ENV_VERSION}, {self.renderer} depth: "
                     "choose another --out, or --force to discard them"
+                )
+            if (record["seed_set"], record.get("seed_salt_sha256")) != (self.seed_set, self.salt_sha256):
+                # Seeds of two sets (or two salts) in one folder would make one summary of two protocols.
+                raise MixedResultsError(
+                    f"{self.out_dir} holds results on the {record['seed_set']} seed set"
+                    f"{' of another salt' if record['seed_set'] == self.seed_set else ''}; this evaluation uses "
+                    f"the {self.seed_set} one: choose another --out, or --force to discard them"
                 )
             if record["agent"] != self.agent_name:
                 raise MixedResultsError(
@@ -364,7 +394,7 @@ class Evaluator:
         return [
             (env_id, seed)
             for env_id in self.env_ids
-            for seed in eval_seeds(self.episodes)
+            for seed in self.seeds
             if self.writer.name(env_id, seed) not in self.done
         ]
 
@@ -405,7 +435,7 @@ class Evaluator:
         bar.close()
         self.elapsed = time.perf_counter() - started
         episodes = write_tables(self.out_dir)
-        asked = {(e, s) for e in self.env_ids for s in eval_seeds(self.episodes)}
+        asked = {(e, s) for e in self.env_ids for s in self.seeds}
         self.selected = episodes[[(e, s) in asked for e, s in zip(episodes["env_id"], episodes["seed"], strict=True)]]
         return summarize(self.selected)
 

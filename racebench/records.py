@@ -8,7 +8,8 @@ A record is the unit every table, figure and leaderboard number is computed from
   ``policy_source`` (the spec it was loaded from), ``privileged`` (decided by the evaluator);
 * **on what**: ``env_id``, ``track``, ``variant``, ``env_version`` (:data:`racebench.ENV_VERSION`, bumped
   whenever episode outcomes can change), ``renderer`` (of the depth image), ``seed``, ``seed_protocol``,
-  ``seed_set``;
+  ``seed_set`` (``public``, or ``private``: then also ``seed_salt_sha256``, the fingerprint of the secret salt
+  the seeds were derived from, :mod:`racebench.leaderboard.seeds`);
 * **the outcome**: ``success``, ``lap_time``, ``crashed``, ``crash_reason``, ``gates_passed``, ``return``,
   ``steps``, ``error``;
 * **where**: ``racebench_version``, ``git_commit``, ``git_dirty``, ``host_cpu``, ``host_platform`` and the
@@ -39,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 RECORD_FORMAT = 2
-SEED_SETS: tuple[str, ...] = ("public",)
+SEED_SETS: tuple[str, ...] = ("public", "private")  # racebench.leaderboard.seeds.SEED_SETS
 RENDERERS: tuple[str, ...] = ("pybullet", "raycast")  # racebench.env.RENDERERS, without importing the env
 MAX_PUBLIC_EPISODES = 100_000  # public seeds are EVAL_SEED_BASE + i, i < this
 POLICY_KINDS: tuple[str, ...] = ("builtin", "sb3", "onnx", "python")
@@ -85,6 +86,9 @@ SCHEMA: dict[str, tuple[tuple[type, ...], bool]] = {
 }
 #: Column order of ``episodes.csv``.
 RECORD_FIELDS: tuple[str, ...] = tuple(SCHEMA)
+#: Fields present only in some records: ``seed_salt_sha256`` (racebench.leaderboard.seeds.salt_sha256) in
+#: exactly the records of the private seed set. Optional, so every public record of format 2 stays valid.
+OPTIONAL_FIELDS: dict[str, tuple[tuple[type, ...], bool]] = {"seed_salt_sha256": (_STR, False)}
 
 
 class InvalidRecordError(ValueError):
@@ -176,6 +180,7 @@ def git_state() -> tuple[str, bool]:
 def seal(record: dict[str, Any]) -> dict[str, Any]:
     """Return ``record`` in schema order with its ``digest`` set."""
     body = {k: record[k] for k in RECORD_FIELDS if k != "digest"}
+    body.update({k: record[k] for k in OPTIONAL_FIELDS if k in record})
     return {**body, "digest": record_digest(body)}
 
 
@@ -212,10 +217,12 @@ def validate_record(record: Any, file_name: str | None = None) -> dict[str, Any]
     missing = [k for k in RECORD_FIELDS if k not in record]
     if missing:
         raise bad(f"missing fields {missing}")
-    extra = sorted(set(record) - set(RECORD_FIELDS))
+    extra = sorted(set(record) - set(RECORD_FIELDS) - set(OPTIONAL_FIELDS))
     if extra:
         raise bad(f"unknown fields {extra}")
-    for key, (types, nullable) in SCHEMA.items():
+    for key, (types, nullable) in {**SCHEMA, **OPTIONAL_FIELDS}.items():
+        if key not in record:
+            continue
         value = record[key]
         if value is None and nullable:
             continue
@@ -240,8 +247,20 @@ def validate_record(record: Any, file_name: str | None = None) -> dict[str, Any]
         raise bad(f"renderer {record['renderer']!r} not in {RENDERERS}")
     if record["seed_set"] not in SEED_SETS:
         raise bad(f"seed_set {record['seed_set']!r} not in {SEED_SETS}")
-    if not EVAL_SEED_BASE <= record["seed"] < EVAL_SEED_BASE + MAX_PUBLIC_EPISODES:
-        raise bad(f"seed {record['seed']} is not an evaluation seed of protocol {SEED_PROTOCOL}")
+    if record["seed_set"] == "public":
+        if not EVAL_SEED_BASE <= record["seed"] < EVAL_SEED_BASE + MAX_PUBLIC_EPISODES:
+            raise bad(f"seed {record['seed']} is not an evaluation seed of protocol {SEED_PROTOCOL}")
+        if "seed_salt_sha256" in record:
+            raise bad("a public-seed record with a seed_salt_sha256")
+    else:
+        from racebench.leaderboard.seeds import seed_in_set
+
+        # Membership of the salt's set needs the salt; the range alone already excludes public and training seeds.
+        if not seed_in_set(record["seed"], "private"):
+            raise bad(f"seed {record['seed']} is not a private seed of protocol {SEED_PROTOCOL}")
+        salt_hash = record.get("seed_salt_sha256")
+        if not (isinstance(salt_hash, str) and re.fullmatch(r"[0-9a-f]{64}", salt_hash)):
+            raise bad("a private-seed record needs seed_salt_sha256, the sha256 of its salt")
     steps, gates, lap = record["steps"], record["gates_passed"], record["lap_time"]
     reason, error = record["crash_reason"], record["error"]
     if not 0 <= steps <= facts["max_steps"]:

@@ -1,0 +1,369 @@
+"""``racebench leaderboard build``: a self-contained static site of the leaderboard (plain HTML and CSS).
+
+No server, no script, no external URL: ``index.html`` (the ranking per tier and aggregate statistics),
+``entries/<name>.html`` (metadata and every cell of an entry) and ``style.css``. The data behind the pages is
+embedded in ``index.html`` as JSON (``<script type="application/json" id="leaderboard-data">``, which a browser
+does not execute) for anyone who wants the numbers without parsing tables. The build is deterministic: no
+timestamps, a fixed bootstrap seed.
+
+Ranking, within a tier: the success rate over the three main ids (episodes pooled), then the mean lap time
+over their successful laps. Entries flown on fewer of the three ids (per-track policies) are listed below,
+unranked: success on an id never flown is unknown, not zero. Success rates are shown as ``k/n``, percentage
+and 95 % Wilson interval; a cell is bold only when its interval lies entirely above the interval of every
+other entry of its tier in that column (the pooled column: of every other ranked entry).
+References (privileged built-ins) are listed for scale, never ranked or bold.
+
+Aggregate statistics: the mean over tracks of the per-track success rate, with a 95 % percentile interval from
+:func:`scipy.stats.bootstrap` resampling episodes within each track (stratified). Every entry is one policy
+file, i.e. one training run: the interval covers the evaluation episodes only, not the spread between training
+seeds, and the page says so instead of presenting episodes as if they were seeds.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import racebench
+from racebench.leaderboard.entries import MAIN_IDS, TIERS, Cell, Entry, load_config, load_entries, summarize_cells
+from racebench.registration import ENV_VERSION
+
+BOOTSTRAP_RESAMPLES = 2000
+BOOTSTRAP_SEED = 0
+TRACK_LABELS: dict[str, str] = {"RaceObs-S-v0": "S", "RaceObs-Circle-v0": "3D Circle", "RaceObs-J-v0": "J"}
+TIER_TEXT: dict[str, str] = {
+    "verified": "ONNX policies (no code runs) evaluated by the maintainers on the private seed set, derived from "
+    "a secret salt: nobody can have fitted these scenes.",
+    "self-reported": "Everything else: SB3 checkpoints and Python agents (their code runs, and code can read the "
+    "simulator's memory) and any policy evaluated on the public seeds only (which can be fitted). "
+    "Ranked on public-seed records.",
+    "reference": "Privileged built-ins that read the true scene and state: shown for scale, never ranked.",
+}
+
+CSS = """
+body { font-family: system-ui, -apple-system, "Segoe UI", sans-serif; margin: 2rem auto; max-width: 75rem;
+       padding: 0 1rem; color: #1b1f23; line-height: 1.45; }
+h1 { margin-bottom: 0.2rem; } h2 { margin-top: 2.2rem; border-bottom: 1px solid #d0d7de; }
+p.lead { color: #57606a; margin-top: 0; }
+table { border-collapse: collapse; margin: 0.8rem 0; font-size: 0.92rem; }
+th, td { border: 1px solid #d0d7de; padding: 0.3rem 0.55rem; text-align: left; vertical-align: top; }
+th { background: #f6f8fa; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
+td.best { font-weight: 700; background: #eafbea; }
+small, .muted { color: #57606a; }
+.tier { display: inline-block; padding: 0 0.45rem; border-radius: 0.6rem; font-size: 0.8rem; color: #fff; }
+.tier-verified { background: #1a7f37; } .tier-self-reported { background: #9a6700; }
+.tier-reference { background: #57606a; }
+code { font-size: 0.85rem; word-break: break-all; }
+.note { background: #fff8c5; border: 1px solid #d4a72c; padding: 0.5rem 0.8rem; border-radius: 0.3rem; }
+"""
+
+
+def _esc(value: Any) -> str:
+    return html.escape(str(value), quote=True)
+
+
+def _sr_html(cell: Cell | None) -> str:
+    if cell is None:
+        return "–"
+    low, high = cell.interval
+    return (
+        f"{100 * cell.success_rate:.0f} % <small>[{100 * low:.0f}–{100 * high:.0f}]</small><br>"
+        f"<small>{cell.successes}/{cell.n}</small>"
+    )
+
+
+def _lap_html(value: float, laps: int) -> str:
+    return "–" if math.isnan(value) else f"{value:.2f} s <small>({laps} laps)</small>"
+
+
+def pooled(cells: dict[str, Cell]) -> Cell | None:
+    """The main ids' cells of an entry pooled into one (successes and laps summed), None without any."""
+    main = [cells[i] for i in MAIN_IDS if i in cells]
+    if not main:
+        return None
+    laps = tuple(t for c in main for t in c.lap_times)
+    return Cell("main", main[0].seed_set, sum(c.n for c in main), sum(c.successes for c in main), laps)
+
+
+def rank(entries: Sequence[Entry], accepted: Sequence[str]) -> list[Entry]:
+    """Entries in order: more main ids covered, then pooled success rate, then mean lap time, then name."""
+
+    def key(entry: Entry) -> tuple[float, float, float]:
+        cells = entry.cells(accepted)
+        main = pooled(cells)
+        covered = sum(i in cells for i in MAIN_IDS)
+        if main is None:
+            return (0, 0.0, math.inf)
+        lap = main.lap_time_mean
+        return (-covered, -main.success_rate, lap if not math.isnan(lap) else math.inf)
+
+    return sorted(entries, key=lambda e: (*key(e), e.name))
+
+
+def separated_best(cells: dict[str, Cell | None]) -> set[str]:
+    """Names whose Wilson interval lies strictly above every other name's interval (needs a rival)."""
+    present = {name: c for name, c in cells.items() if c is not None}
+    best = set()
+    for name, cell in present.items():
+        rivals = [c for other, c in present.items() if other != name]
+        if rivals and all(cell.interval[0] > c.interval[1] for c in rivals):
+            best.add(name)
+    return best
+
+
+def aggregate(cells: dict[str, Cell], records: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
+    """Mean over the main ids' success rates with a stratified bootstrap interval (scipy); None below 2 ids."""
+    from scipy.stats import bootstrap
+
+    ids = [i for i in MAIN_IDS if i in cells]
+    if len(ids) < 2:
+        return None
+    samples = [np.array([float(r["success"]) for r in records if r["env_id"] == i]) for i in ids]
+    point = float(np.mean([s.mean() for s in samples]))
+    if all(np.all(s == s[0]) for s in samples):  # no spread at all: every resample gives the point itself
+        low = high = point
+    else:
+        # Several samples: scipy resamples each one separately, i.e. stratified over tracks.
+        result = bootstrap(
+            samples,
+            lambda *s, axis=-1: np.mean([x.mean(axis=axis) for x in s], axis=0),
+            n_resamples=BOOTSTRAP_RESAMPLES,
+            confidence_level=0.95,
+            method="percentile",
+            rng=np.random.default_rng(BOOTSTRAP_SEED),
+        )
+        low, high = float(result.confidence_interval.low), float(result.confidence_interval.high)
+    return {"ids": ids, "mean_sr": point, "low": low, "high": high, "episodes": int(sum(len(s) for s in samples))}
+
+
+def _entry_data(entry: Entry, accepted: Sequence[str]) -> dict[str, Any]:
+    tier = entry.tier(accepted)
+    cells = entry.cells(accepted)
+    main = pooled(cells)
+    return {
+        "name": entry.name,
+        "tier": tier,
+        "meta": entry.meta,
+        "kind": entry.kind,
+        "cells": {
+            env_id: {
+                "seed_set": c.seed_set,
+                "n": c.n,
+                "successes": c.successes,
+                "wilson95": list(c.interval),
+                "lap_time_mean": None if math.isnan(c.lap_time_mean) else c.lap_time_mean,
+            }
+            for env_id, c in cells.items()
+        },  # fmt: skip
+        "main": None if main is None else {"n": main.n, "successes": main.successes, "wilson95": list(main.interval)},
+        "aggregate": aggregate(cells, entry.ranked_records(accepted)),
+    }
+
+
+def _page(title: str, body: str, css: str) -> str:
+    return (
+        '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
+        '<meta name="viewport" content="width=device-width, initial-scale=1">\n'
+        f'<title>{_esc(title)}</title>\n<link rel="stylesheet" href="{css}">\n</head>\n'
+        f"<body>\n{body}\n</body>\n</html>\n"
+    )
+
+
+def _tier_badge(tier: str) -> str:
+    return f'<span class="tier tier-{tier}">{tier}</span>'
+
+
+def covers_main(entry: Entry, accepted: Sequence[str]) -> bool:
+    """Whether the entry was flown on all three main ids (the ranking's success is over exactly those)."""
+    cells = entry.cells(accepted)
+    return all(i in cells for i in MAIN_IDS)
+
+
+def _ranking_table(
+    table_id: str, entries: list[Entry], accepted: Sequence[str], ranked: bool, bold: dict[str, set[str]]
+) -> str:
+    """One table of entries: a rank column when ``ranked``, bold cells as given per column."""
+    columns = [*MAIN_IDS, "main"]
+    cells = {e.name: e.cells(accepted) for e in entries}
+    head = "".join(f"<th>SR {TRACK_LABELS[i]}</th>" for i in MAIN_IDS)
+    rows = []
+    for position, entry in enumerate(entries, start=1):
+        main = pooled(cells[entry.name])
+        tds = [f'<td class="num">{position if ranked else "–"}</td>']
+        tds.append(f'<td><a href="entries/{_esc(entry.name)}.html">{_esc(entry.name)}</a><br>'
+                   f'<small>{_esc(entry.kind)}, {_esc(entry.meta["obs_mode"])}</small></td>')  # fmt: skip
+        for col in columns:
+            klass = "num best" if entry.name in bold.get(col, set()) else "num"
+            value = main if col == "main" else cells[entry.name].get(col)
+            tds.append(f'<td class="{klass}">{_sr_html(value)}</td>')
+        lap = _lap_html(main.lap_time_mean, len(main.lap_times)) if main else "–"
+        tds.append(f'<td class="num">{lap}</td>')
+        covered = sum(i in cells[entry.name] for i in MAIN_IDS)
+        seed_set = main.seed_set if main else "–"
+        tds.append(f'<td class="num">{covered}/3</td><td>{_esc(seed_set)}</td>')
+        steps = entry.meta["training_steps"]
+        tds.append(f'<td class="num">{steps:,}</td>')
+        rows.append("<tr>" + "".join(tds) + "</tr>")
+    return (
+        f'<table class="ranking" id="{table_id}">\n<tr><th>#</th><th>entry</th>{head}<th>SR main ids (pooled)</th>'
+        "<th>lap time (main ids)</th><th>main ids flown</th><th>seeds</th><th>training steps</th></tr>\n"
+        + "\n".join(rows)
+        + "\n</table>"
+    )
+
+
+def tier_tables(tier: str, members: list[Entry], accepted: Sequence[str]) -> str:
+    """The HTML of one tier: ranked entries (all three main ids), then the unranked ones, bold where separated."""
+    if tier == "reference":
+        return _ranking_table("table-reference", rank(members, accepted), accepted, ranked=False, bold={})
+    full = rank([e for e in members if covers_main(e, accepted)], accepted)
+    partial = rank([e for e in members if not covers_main(e, accepted)], accepted)
+    cells = {e.name: e.cells(accepted) for e in members}
+    # Per-track columns compare every entry of the tier flown on that id; the pooled column only the ranked ones,
+    # whose pools are over the same three ids.
+    bold = {i: separated_best({e.name: cells[e.name].get(i) for e in members}) for i in MAIN_IDS}
+    bold["main"] = separated_best({e.name: pooled(cells[e.name]) for e in full})
+    html_parts = []
+    if full:
+        html_parts.append(_ranking_table(f"ranking-{tier}", full, accepted, ranked=True, bold=bold))
+    else:
+        html_parts.append('<p class="muted">No entry of this tier was flown on all three main ids: none ranked.</p>')
+    if partial:
+        html_parts.append(
+            "<p><b>Not ranked</b>: flown on fewer than the three main ids (e.g. per-track policies evaluated on their"
+            " own track only), so their success over the three ids is unknown. Listed by success on the ids they"
+            " were flown on; not comparable with the ranking above.</p>"
+        )
+        html_parts.append(_ranking_table(f"unranked-{tier}", partial, accepted, ranked=False, bold=bold))
+    return "\n".join(html_parts)
+
+
+def _aggregate_table(entries: list[Entry], data: dict[str, dict[str, Any]]) -> str:
+    rows = []
+    for entry in entries:
+        agg = data[entry.name]["aggregate"]
+        if agg is None:
+            continue
+        seeds = entry.meta["training_seeds"]
+        note = "one policy file = one training run" + (f" (training seed {seeds[0]})" if len(seeds) == 1 else "")
+        rows.append(
+            f"<tr><td>{_esc(entry.name)}</td><td>{_tier_badge(data[entry.name]['tier'])}</td>"
+            f'<td class="num">{100 * agg["mean_sr"]:.1f} % <small>[{100 * agg["low"]:.1f}–{100 * agg["high"]:.1f}]'
+            f'</small></td><td class="num">{len(agg["ids"])} ids, {agg["episodes"]} episodes</td>'
+            f"<td>{_esc(note)}</td></tr>"
+        )
+    if not rows:
+        return '<p class="muted">No entry was evaluated on two or more of the main ids.</p>'
+    return (
+        '<table id="aggregate">\n<tr><th>entry</th><th>tier</th><th>mean SR over tracks [95 % bootstrap]</th>'
+        "<th>evaluated</th><th>what the interval covers</th></tr>\n" + "\n".join(rows) + "\n</table>"
+    )
+
+
+def _entry_page(entry: Entry, data: dict[str, Any], accepted: Sequence[str]) -> str:
+    meta = entry.meta
+    tier = data["tier"]
+    why = {
+        "reference": "a privileged built-in (reads the true scene)",
+        "verified": "an ONNX policy with records on the maintainers' private seed set",
+        "self-reported": "not an ONNX policy evaluated on the maintainers' private seeds",
+    }[tier]
+    rows = "".join(
+        f"<tr><th>{_esc(k)}</th><td>{_esc(', '.join(map(str, v)) if isinstance(v, list) else v)}</td></tr>"
+        for k, v in meta.items()
+        if k not in ("policy_sha256",)
+    )
+    rows += f"<tr><th>policy_sha256</th><td><code>{_esc(meta['policy_sha256'])}</code></td></tr>"
+    records = entry.records
+    facts = {
+        "record files": len(records),
+        "seed sets": ", ".join(sorted({r["seed_set"] for r in records})),
+        "env version": ", ".join(sorted({str(r["env_version"]) for r in records})),
+        "renderers": ", ".join(sorted({r["renderer"] for r in records})),
+        "racebench commits": ", ".join(sorted({r["git_commit"] for r in records})),
+        "host CPUs": ", ".join(sorted({r["host_cpu"] for r in records})),
+    }
+    rows += "".join(f"<tr><th>{_esc(k)}</th><td>{_esc(v)}</td></tr>" for k, v in facts.items())
+    cell_rows = []
+    for seed_set in sorted({r["seed_set"] for r in records}):
+        for env_id, cell in summarize_cells([r for r in records if r["seed_set"] == seed_set]).items():
+            laps = np.array(cell.lap_times)
+            median = f"{np.median(laps):.2f} s" if len(laps) else "–"
+            cell_rows.append(
+                f'<tr><td>{_esc(env_id)}</td><td>{_esc(seed_set)}</td><td class="num">{cell.n}</td>'
+                f'<td class="num">{_sr_html(cell)}</td><td class="num">{_lap_html(cell.lap_time_mean, len(laps))}'
+                f'</td><td class="num">{median}</td></tr>'
+            )
+    body = (
+        f'<p><a href="../index.html">← leaderboard</a></p>\n<h1>{_esc(entry.name)} {_tier_badge(tier)}</h1>\n'
+        f'<p class="lead">Tier: {tier}, because it is {why}.</p>\n'
+        f"<h2>Metadata</h2>\n<table>{rows}</table>\n"
+        '<h2>Every evaluated cell</h2>\n<p class="muted">SR: success rate, 95 % Wilson interval, successes/episodes.'
+        " Lap time over successful laps.</p>\n"
+        '<table id="cells"><tr><th>env id</th><th>seed set</th><th>n</th><th>SR</th><th>mean lap</th>'
+        "<th>median lap</th></tr>\n" + "\n".join(cell_rows) + "\n</table>"
+    )
+    return _page(f"{entry.name} · racebench leaderboard", body, "../style.css")
+
+
+def build_site(leaderboard: str | Path, out: str | Path) -> Path:
+    """Write the site of the entries under ``leaderboard`` into ``out`` (replacing an earlier build); return index."""
+    accepted = load_config(leaderboard)["private_salt_sha256"]
+    entries = load_entries(leaderboard)
+    out = Path(out)
+    if (out / "entries").is_dir():
+        shutil.rmtree(out / "entries")  # a removed entry must not keep its page
+    (out / "entries").mkdir(parents=True, exist_ok=True)
+    (out / "style.css").write_text(CSS.lstrip())
+    data = {e.name: _entry_data(e, accepted) for e in entries}
+    sections = []
+    for tier in TIERS:
+        members = rank([e for e in entries if data[e.name]["tier"] == tier], accepted)
+        sections.append(f"<h2 id=\"tier-{tier}\">{_tier_badge(tier)} {tier.capitalize()}</h2>\n"
+                        f"<p>{_esc(TIER_TEXT[tier])}</p>")  # fmt: skip
+        if members:
+            sections.append(tier_tables(tier, members, accepted))
+        elif tier == "verified":
+            state = "no maintainer salt is published yet" if not accepted else "no ONNX entry has been verified yet"
+            sections.append(f'<p class="note">No verified entries: {state} (results/leaderboard/README.md).</p>')
+        else:
+            sections.append('<p class="muted">No entries.</p>')
+        for entry in members:
+            page = _entry_page(entry, data[entry.name], accepted)
+            (out / "entries" / f"{entry.name}.html").write_text(page)
+    ranked = [e for t in TIERS for e in rank([x for x in entries if data[x.name]["tier"] == t], accepted)]
+    blob = json.dumps(
+        {"racebench_version": racebench.__version__, "env_version": ENV_VERSION, "entries": data},
+        sort_keys=True, allow_nan=False,
+    ).replace("</", "<\\/")  # fmt: skip
+    body = (
+        "<h1>racebench leaderboard</h1>\n"
+        f'<p class="lead">{len(entries)} entries · env version {ENV_VERSION} · racebench '
+        f"{_esc(racebench.__version__)} · main ids: {', '.join(MAIN_IDS)}</p>\n"
+        "<p>Ranking within a tier: the success rate over the three main ids (pooled episodes), then the mean lap"
+        " time of their successful laps. Entries flown on fewer of the three are listed unranked below it (success"
+        " on an id never flown is unknown, not zero). SR cells: percentage, 95 % Wilson interval,"
+        " successes/episodes. <b>Bold</b> only where an entry's interval lies entirely above every other entry's of"
+        " its tier in that column (pooled column: every other ranked entry's).</p>\n"
+        + "\n".join(sections)
+        + '\n<h2 id="aggregate-statistics">Aggregate statistics</h2>\n'
+        "<p>Mean over the main ids of the per-track success rate, with a 95 % percentile interval from scipy's"
+        f" bootstrap ({BOOTSTRAP_RESAMPLES} resamples of the episodes within each track, i.e. stratified over"
+        " tracks). <b>Every entry is a single training run (one training seed)</b>, so these intervals cover the"
+        " evaluation scenes only, not the variation between training runs; with several seeds per method they"
+        " would be bootstrapped over runs as well (rliable-style). Entries flown on fewer than two main ids are"
+        " left out.</p>\n"
+        + _aggregate_table(ranked, data)
+        + f'\n<script type="application/json" id="leaderboard-data">{blob}</script>'
+    )
+    index = out / "index.html"
+    index.write_text(_page("racebench leaderboard", body, "style.css"))
+    return index

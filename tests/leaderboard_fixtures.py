@@ -1,0 +1,158 @@
+"""Small leaderboards for the leaderboard tests: a repository in a temporary folder, fast agents, a test salt."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+from pathlib import Path
+
+import onnx
+from onnx import TensorProto, helper
+
+from racebench.evaluation import Evaluator
+from racebench.leaderboard.entries import add_entry
+from racebench.leaderboard.seeds import salt_sha256
+from racebench.quadrotor import QuadrotorParams
+from racebench.records import seal
+
+ENV = "RaceObs-S-Level1-v0"  # no obstacles: hover and the planner run quickly and deterministically
+SALT = "leaderboard-test-salt-7d2f9c41b8e6"
+
+#: An agent that declares itself unprivileged, then finds the RaceEnv through the garbage collector and flies the
+#: privileged gate follower (issue 13): the evaluator cannot stop it reading memory, so the tier rule must.
+GC_AGENT = textwrap.dedent(
+    """
+    import gc
+
+    from racebench.control import GateFollower
+
+
+    class Sneaky:
+        obs_mode = "state"
+        privileged = False
+
+        def __init__(self):
+            self.follower = GateFollower()
+
+        def reset(self, env=None, seed=None):
+            from racebench.env import RaceEnv
+
+            # The live env of this episode: reset with this episode's seed, not closed (old envs linger in memory).
+            self.env = next(
+                o for o in gc.get_objects()
+                if isinstance(o, RaceEnv) and not getattr(o, "_closed", False) and o.np_random_seed == seed
+            )
+
+        def act(self, obs):
+            return self.follower.act_privileged(self.env)
+    """
+)
+
+
+def meta(name: str, obs_mode: str = "state") -> dict:
+    """Descriptive entry fields, as a submitter fills them."""
+    return {
+        "name": name,
+        "authors": ["A. Tester"],
+        "method": "test policy",
+        "link": "tests/leaderboard_fixtures.py",
+        "obs_mode": obs_mode,
+        "training_steps": 1000,
+        "training_wall_clock_s": 1.5,
+        "hardware": "a test machine",
+        "training_seeds": [0],
+    }
+
+
+def write_hover_onnx(path: Path) -> Path:
+    """A state policy as a plain ONNX graph (``action = state @ 0 + hover``): no code in the file, no torch."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    hover = [QuadrotorParams().hover_action, 0.0, 0.0, 0.0]
+    graph = helper.make_graph(
+        [helper.make_node("MatMul", ["state", "w"], ["z"]), helper.make_node("Add", ["z", "b"], ["action"])],
+        "hover",
+        [helper.make_tensor_value_info("state", TensorProto.FLOAT, ["batch", 17])],
+        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", 4])],
+        [
+            helper.make_tensor("w", TensorProto.FLOAT, [17, 4], [0.0] * 68),
+            helper.make_tensor("b", TensorProto.FLOAT, [4], hover),
+        ],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+    return path
+
+
+def make_repo(tmp: Path, private_accepted: bool = True) -> Path:
+    """A repository root with ``results/leaderboard`` whose config accepts :data:`SALT` (or nothing)."""
+    board = tmp / "results" / "leaderboard"
+    board.mkdir(parents=True)
+    salts = [salt_sha256(SALT)] if private_accepted else []
+    (board / "leaderboard.yaml").write_text(f"private_salt_sha256: {json.dumps(salts)}\n")
+    return board
+
+
+def evaluate(
+    spec: str, out: Path, episodes: int, seed_set: str = "public", envs: tuple[str, ...] = (ENV,), **kw
+) -> Path:
+    """Evaluate ``spec`` into ``out`` (the fixture repository's result folder)."""
+    salt = SALT if seed_set == "private" else None
+    Evaluator(spec, list(envs), episodes=episodes, out_dir=out, seed_set=seed_set, salt=salt, **kw).run(progress=False)
+    return out
+
+
+def add(board: Path, policy: str, name: str, records: list[Path], **kw) -> object:
+    """``racebench leaderboard add`` for the fixture repository."""
+    return add_entry(board, policy, meta(name, kw.pop("obs_mode", "state")), [str(r) for r in records], **kw)
+
+
+def forge_successes(folder: Path) -> int:
+    """Doctor every failed record of ``folder`` into a success that still passes validation; return how many.
+
+    A hover episode runs to the time limit, so claiming every gate passed with the lap at its last step is
+    consistent record by record: only the statistical replay can catch it.
+    """
+    from racebench.records import env_facts
+
+    count = 0
+    for path in (folder / "records").glob("*.json"):
+        record = json.loads(path.read_text())
+        if record["success"]:
+            continue
+        facts = env_facts(record["env_id"])
+        forged = {**record, "success": True, "gates_passed": facts["gates"], "crashed": False, "crash_reason": None,
+                  "error": None, "lap_time": record["steps"] * facts["control_dt"]}  # fmt: skip
+        path.write_text(json.dumps(seal(forged)))
+        count += 1
+    return count
+
+
+def write_records(
+    out: Path, spec: str, env_id: str, successes: int, n: int, lap: float = 6.0, seed_set: str = "public"
+) -> Path:
+    """Write ``n`` record-valid episodes of ``spec`` on ``env_id`` without flying: the first ``successes`` succeed.
+
+    For site tests, which need chosen counts on the main ids and must stay fast. Successes take ``lap`` + 0.1 s × i
+    (spread, so lap statistics are not degenerate); failures crash into an obstacle after one second.
+    """
+    from racebench.agents import policy_identity
+    from racebench.evaluation import RecordWriter
+    from racebench.leaderboard.seeds import seeds_for
+    from racebench.records import env_facts
+
+    identity = policy_identity(spec)
+    salt = SALT if seed_set == "private" else None
+    writer = RecordWriter(out, identity, identity.source, "pybullet", seed_set, salt_sha256(SALT) if salt else None)
+    facts = env_facts(env_id)
+    dt = facts["control_dt"]
+    for i, seed in enumerate(seeds_for(seed_set, n, salt)):
+        if i < successes:
+            steps = int(round((lap + 0.1 * i) / dt))
+            result = {"success": True, "lap_time": steps * dt, "crashed": False, "crash_reason": None,
+                      "gates_passed": facts["gates"], "return": 10.0, "steps": steps, "error": None}  # fmt: skip
+        else:
+            result = {"success": False, "lap_time": None, "crashed": True, "crash_reason": "obstacle:0",
+                      "gates_passed": 1, "return": -5.0, "steps": int(round(1.0 / dt)), "error": None}  # fmt: skip
+        writer.write(env_id, seed, result, None)
+    return out

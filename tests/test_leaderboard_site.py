@@ -1,0 +1,186 @@
+"""The static site: built from small fixture entries (records written, not flown), checked as HTML and in chromium."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+from leaderboard_fixtures import GC_AGENT, add, make_repo, write_hover_onnx, write_records
+
+from racebench import cli
+from racebench.leaderboard.entries import MAIN_IDS
+from racebench.statistics import wilson_interval
+
+ROOT = Path(__file__).parents[1]
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+class Page(HTMLParser):
+    """Links, table rows (cell texts and bold flags) and the embedded JSON of one page."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.refs: list[str] = []
+        self.tables: dict[str, list[list[tuple[str, bool]]]] = {}
+        self.table: str | None = None
+        self.cell: list[str] | None = None
+        self.bold = False
+        self.script = False
+        self.data = ""
+
+    def handle_starttag(self, tag: str, attrs: list) -> None:
+        """Collect links; open tables, rows and cells."""
+        attrs = dict(attrs)
+        for key in ("href", "src"):
+            if key in attrs:
+                self.refs.append(attrs[key])
+        if tag == "table":
+            self.table = attrs.get("id", f"table{len(self.tables)}")
+            self.tables[self.table] = []
+        elif tag == "tr" and self.table:
+            self.tables[self.table].append([])
+        elif tag == "td" and self.table:
+            self.cell, self.bold = [], "best" in attrs.get("class", "")
+        elif tag == "script":
+            self.script = attrs.get("type") == "application/json"
+
+    def handle_endtag(self, tag: str) -> None:
+        """Close cells (text and bold flag), tables and scripts."""
+        if tag == "td" and self.cell is not None:
+            self.tables[self.table][-1].append((" ".join("".join(self.cell).split()), self.bold))
+            self.cell = None
+        elif tag == "table":
+            self.table = None
+        elif tag == "script":
+            self.script = False
+
+    def handle_data(self, data: str) -> None:
+        """Cell text and the embedded JSON."""
+        if self.cell is not None:
+            self.cell.append(data + " ")
+        if self.script:
+            self.data += data
+
+
+def parse(path: Path) -> Page:
+    """Parse one HTML file of the site."""
+    page = Page()
+    page.feed(path.read_text())
+    return page
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Entries with chosen counts: strong (9/10 a track), weak (2/10), a one-track entry, a verified ONNX, refs."""
+    root = tmp_path_factory.mktemp("repo")
+    board = make_repo(root)
+    res = root / "results"
+    onnx_a, onnx_b = write_hover_onnx(root / "p" / "a.onnx"), write_hover_onnx(root / "p" / "b.onnx")
+    onnx_b.write_bytes(onnx_b.read_bytes() + b"")  # same graph, other file: the ids below are by path
+    (root / "p" / "sneaky.py").write_text(GC_AGENT)
+    (root / "p" / "weak.py").write_text(GC_AGENT.replace("Sneaky", "Weak"))
+    strong_spec, weak_spec = f"{root / 'p' / 'sneaky.py'}:Sneaky", f"{root / 'p' / 'weak.py'}:Weak"
+    for env_id in MAIN_IDS:
+        write_records(res / "strong", strong_spec, env_id, 9, 10, lap=6.0)
+        write_records(res / "weak", weak_spec, env_id, 2, 10, lap=5.0)
+        write_records(res / "verified", str(onnx_a), env_id, 5, 10, seed_set="private")
+        write_records(res / "planner", "planner", env_id, 10, 10, lap=7.0)
+    write_records(res / "one-track", str(onnx_b), MAIN_IDS[0], 10, 10)
+    add(board, strong_spec, "strong", [res / "strong"])
+    add(board, weak_spec, "weak", [res / "weak"])
+    add(board, str(onnx_a), "verified-onnx", [res / "verified"])
+    add(board, str(onnx_b), "one-track", [res / "one-track"])
+    add(board, "planner", "planner", [res / "planner"])
+    out = root / "site"
+    assert cli.main(["leaderboard", "build", "--leaderboard", str(board), "--out", str(out)]) == 0
+    return out
+
+
+def test_the_site_is_self_contained(site: Path) -> None:
+    pages = [site / "index.html", *sorted((site / "entries").glob("*.html"))]
+    assert {p.stem for p in pages[1:]} == {"strong", "weak", "verified-onnx", "one-track", "planner"}
+    for page in pages:
+        for ref in parse(page).refs:
+            assert not re.match(r"^[a-z]+:", ref) and not ref.startswith("//"), f"{page.name}: external {ref}"
+            assert (page.parent / ref).resolve().is_file(), f"{page.name}: {ref} does not exist"
+        assert "<script" not in page.read_text().replace('<script type="application/json"', "")
+
+
+def test_ranking_per_tier_with_n_intervals_and_separated_bold(site: Path) -> None:
+    page = parse(site / "index.html")
+    ranked = page.tables["ranking-self-reported"][1:]
+    assert [row[1][0].split()[0] for row in ranked] == ["strong", "weak"]
+    low, high = wilson_interval(9, 10)
+    assert ranked[0][2][0] == f"90 % [{100 * low:.0f}–{100 * high:.0f}] 9/10"
+    assert ranked[0][5][0].endswith("27/30")
+    # Circle, J, pooled: 9/10 [60–98] against 2/10 [6–51] is separated, so bold; on S the unranked one-track
+    # entry's 10/10 [72–100] overlaps it, so not bold. The weak row never.
+    assert [bold for _, bold in ranked[0][2:6]] == [False, True, True, True]
+    assert not any(bold for _, bold in ranked[1])
+    unranked = page.tables["unranked-self-reported"][1:]
+    assert [(row[0][0], row[1][0].split()[0]) for row in unranked] == [("–", "one-track")]
+    assert unranked[0][2] == ("100 % [72–100] 10/10", False)  # [72–100] overlaps strong's [60–98]: not bold
+    verified = page.tables["ranking-verified"][1:]
+    assert [row[1][0].split()[0] for row in verified] == ["verified-onnx"]
+    assert verified[0][8][0] == "private"
+    reference = page.tables["table-reference"][1:]
+    assert [(row[0][0], row[1][0].split()[0]) for row in reference] == [("–", "planner")]
+    assert not any(bold for row in reference for _, bold in row)
+
+
+def test_aggregate_statistics_bootstrap_and_the_single_seed_caveat(site: Path) -> None:
+    page = parse(site / "index.html")
+    data = json.loads(page.data)["entries"]
+    agg = data["strong"]["aggregate"]
+    assert agg["mean_sr"] == pytest.approx(0.9) and agg["episodes"] == 30
+    assert 0.7 < agg["low"] < 0.9 < agg["high"] <= 1.0  # a real interval around the point
+    assert data["one-track"]["aggregate"] is None  # one track: no aggregate over tracks to bootstrap
+    rows = {row[0][0]: row for row in page.tables["aggregate"][1:]}
+    assert set(rows) == {"strong", "weak", "verified-onnx", "planner"}
+    assert "one training run" in rows["strong"][4][0]
+    assert "single training run (one training seed)" in (site / "index.html").read_text()
+
+
+def test_entry_pages_show_metadata_and_every_cell(site: Path) -> None:
+    page = parse(site / "entries" / "strong.html")
+    text = (site / "entries" / "strong.html").read_text()
+    assert "A. Tester" in text and "self-reported" in text and "training_seeds" in text
+    cells = page.tables["cells"][1:]
+    assert [row[0][0] for row in cells] == list(MAIN_IDS) and all(row[2][0] == "10" for row in cells)
+
+
+def console_messages(url: str) -> list[str]:
+    """Console output of chromium loading ``url`` headless (our pages run no script, so any is an error)."""
+    proc = subprocess.run(
+        [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--enable-logging=stderr", "--v=0",
+         "--dump-dom", url],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0 and "</html>" in proc.stdout, proc.stderr[-2000:]
+    return [line for line in proc.stderr.splitlines() if ":CONSOLE" in line]
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (apt-get install chromium)")
+def test_the_site_loads_in_headless_chromium_without_console_messages(site: Path, tmp_path: Path) -> None:
+    broken = tmp_path / "broken.html"
+    broken.write_text("<!DOCTYPE html><html><body><script>undefinedFunction();</script></body></html>")
+    assert any("undefinedFunction" in m for m in console_messages(broken.as_uri()))  # the detector detects
+    for page in [site / "index.html", *sorted((site / "entries").glob("*.html"))]:
+        assert console_messages(page.as_uri()) == [], page.name
+
+
+def test_the_committed_site_is_current(tmp_path: Path) -> None:
+    """``results/leaderboard/site`` is what ``racebench leaderboard build`` makes of the committed entries."""
+    committed = ROOT / "results" / "leaderboard" / "site"
+    assert (committed / "index.html").is_file() and (ROOT / "results" / "leaderboard" / "site.png").is_file()
+    from racebench.leaderboard.site import build_site
+
+    fresh = build_site(ROOT / "results" / "leaderboard", tmp_path / "site")
+    for path in [fresh, *sorted((fresh.parent / "entries").glob("*.html")), fresh.parent / "style.css"]:
+        relative = path.relative_to(fresh.parent)
+        assert (committed / relative).read_text() == path.read_text(), f"{relative} is stale: rebuild the site"
