@@ -8,7 +8,8 @@ table and figure.
 
 Spec strings accepted by :func:`load_agent`:
 
-* ``random``, ``hover``, ``planner`` (privileged), ``follow`` (privileged, ignores obstacles);
+* ``random``, ``hover``, ``planner`` (privileged, cautious), ``planner-fast`` (privileged, the fast expert),
+  ``follow`` (privileged, ignores obstacles);
 * ``path/to/model.zip``: a stable-baselines3 / sb3-contrib checkpoint (recurrent policies included);
 * ``path/to/policy.onnx``: an ONNX policy run with onnxruntime (no code from the file runs), see
   :class:`OnnxAgent` for the expected inputs and outputs and :func:`export_onnx` to make one;
@@ -39,11 +40,17 @@ import numpy as np
 from racebench.control import GateFollower
 from racebench.quadrotor import QuadrotorParams
 
-BUILTIN_AGENTS: tuple[str, ...] = ("random", "hover", "planner", "follow")
+BUILTIN_AGENTS: tuple[str, ...] = ("random", "hover", "planner", "planner-fast", "follow")
 #: Which built-in agents read the true scene and state. Only these are ever privileged.
-BUILTIN_PRIVILEGED: dict[str, bool] = {"random": False, "hover": False, "planner": True, "follow": True}
+BUILTIN_PRIVILEGED: dict[str, bool] = {
+    "random": False,
+    "hover": False,
+    "planner": True,
+    "planner-fast": True,
+    "follow": True,
+}
 #: Code version of each built-in agent, part of its policy hash: bump it when the agent's behaviour changes.
-BUILTIN_VERSIONS: dict[str, int] = {"random": 1, "hover": 1, "planner": 1, "follow": 1}
+BUILTIN_VERSIONS: dict[str, int] = {"random": 1, "hover": 1, "planner": 1, "planner-fast": 1, "follow": 1}
 #: sha256 of the first-party checkpoints shipped in ``baselines/checkpoints`` -> their path under it. They load
 #: without ``trust_code`` (``tests/test_checkpoints.py`` keeps this list and the committed files in step).
 TRUSTED_CHECKPOINTS: dict[str, str] = {
@@ -519,6 +526,10 @@ def load_agent(spec: str, trust_code: bool = False) -> Agent:
         from racebench.planner import PlannerAgent
 
         return PlannerAgent()
+    if spec == "planner-fast":
+        from racebench.planner import FastPlannerAgent
+
+        return FastPlannerAgent()
     if spec == "follow":
         return FollowAgent()
     if spec.endswith(".zip"):

@@ -18,6 +18,7 @@ import numpy as np
 
 from racebench.control import GateFollower, acceleration_to_ctbr
 from racebench.obstacles import find_corridor
+from racebench.quadrotor import QuadrotorParams
 from racebench.reward import wrap_angle
 
 
@@ -204,9 +205,7 @@ def pull_taut(scene, polyline: np.ndarray, radius: float) -> np.ndarray:
 def clearance_gradient(scene, points: np.ndarray, eps: float = 0.02) -> np.ndarray:
     """Unit direction in which clearance grows fastest at each point (central differences)."""
     offsets = np.eye(3) * eps
-    grad = np.stack(
-        [scene_clearance(scene, points + o) - scene_clearance(scene, points - o) for o in offsets], axis=1
-    )
+    grad = np.stack([scene_clearance(scene, points + o) - scene_clearance(scene, points - o) for o in offsets], axis=1)
     return grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-9)
 
 
@@ -234,11 +233,11 @@ def relax(
     points = polyline
     for spacing in spacings:
         points, _ = resample(points, spacing)
-        for it in range(iterations):
-            if it % 25 == 0 and it:
-                points, _ = resample(points, spacing)
-            if len(points) < 5:
-                break
+        if len(points) < 5:
+            continue
+        # No resampling inside a stage: the Laplacian terms keep the spacing even on their own, and
+        # resampling would place points on segments that were only proven clear at their samples.
+        for _ in range(iterations):
             step = np.zeros_like(points)
             fourth = points[:-4] - 4 * points[1:-3] + 6 * points[2:-2] - 4 * points[3:-1] + points[4:]
             step[2:-2] -= bending * fourth
@@ -259,13 +258,18 @@ def relax(
             # A move counts only if the point and the midpoints of its two segments stay clear: the
             # samples alone could let a segment cut a corner between them.
             # Inside a gate zone the floor is higher: the path crosses the opening away from its bars.
-            midpoints = scene_clearance(scene, 0.5 * (target[:-1] + target[1:])) >= min_clearance
             floor = np.where(at_gate, max(min_clearance, gate_floor), min_clearance)
             after = scene_clearance(scene, target)
-            ok = (after >= floor) | (after >= np.minimum(clearance, floor))
-            ok[1:] &= midpoints
-            ok[:-1] &= midpoints
-            points[ok] = target[ok]
+            ok = (after >= floor) | (after >= np.minimum(clearance, floor))  # below the floor: no worse
+            moved = np.where(ok[:, None], target, points)
+            for _ in range(len(points)):  # undo moves until every segment's midpoint of the result is clear
+                bad = np.flatnonzero(scene_clearance(scene, 0.5 * (moved[:-1] + moved[1:])) < min_clearance - 1e-9)
+                bad = bad[ok[bad] | ok[bad + 1]]  # segments no move touched stay as they were
+                if not len(bad):
+                    break
+                ok[bad] = ok[bad + 1] = False
+                moved = np.where(ok[:, None], target, points)
+            points = moved
     return points
 
 
@@ -292,7 +296,7 @@ def minimum_time_speeds(
     arc: np.ndarray,
     curvature: np.ndarray,
     max_accel: float,
-    max_speed: float,
+    max_speed: float | np.ndarray,
     start_speed: float,
     drag: float = 0.0,
 ) -> np.ndarray:
@@ -302,6 +306,7 @@ def minimum_time_speeds(
     kappa = np.linalg.norm(curvature, axis=1)
     v = np.minimum(np.sqrt(max_accel / np.maximum(kappa, 1e-9)), max_speed)
     v[0] = min(v[0], start_speed)
+    v = np.minimum(v, max_speed)  # max_speed may be a per-sample cap
     ds = np.diff(arc)
     for i in range(len(v) - 1):
         lateral = v[i] ** 2 * kappa[i]
@@ -326,33 +331,55 @@ def limit_jerk(speeds: np.ndarray, arc: np.ndarray, window: float) -> np.ndarray
     floor = np.maximum(speeds, 1.0)
     half = np.maximum(1, np.round(0.5 * window * floor / ds).astype(int))
     lo, hi = np.maximum(np.arange(n) - half, 0), np.minimum(np.arange(n) + half + 1, n)
-    eroded = np.array([floor[a:b].min() for a, b in zip(lo, hi)])
+    eroded = np.array([floor[a:b].min() for a, b in zip(lo, hi, strict=True)])
     csum = np.concatenate([[0.0], np.cumsum(eroded)])
     # erosion then averaging over the same window: the average of values below the profile stays below it
     return np.minimum((csum[hi] - csum[lo]) / (hi - lo), speeds)
 
 
-def passes_gates(path: np.ndarray, gates) -> bool:
-    """Whether the polyline crosses every gate's opening in order (the env's own passage test)."""
-    k = 0
+def gate_crossings(path: np.ndarray, gates) -> list[int]:
+    """Index ``k`` of the segment ``path[k] → path[k+1]`` that passes each gate's opening (the env's own
+    passage test), in order; shorter than ``gates`` when the polyline misses one."""
+    crossings, k = [], 0
     for gate in gates:
         while k < len(path) - 1 and not gate.passed_by(path[k], path[k + 1]):
             k += 1
         if k == len(path) - 1:
-            return False
+            break
+        crossings.append(k)
         k += 1
-    return True
+    return crossings
 
 
 class FastPlannerAgent:
-    """Privileged fast expert: a taut, smoothed path through the corridor, flown at the fastest speed
-    profile the airframe's thrust allows, tracked with acceleration feedforward.
+    """Privileged fast expert: a racing line through the obstacle corridor, flown at the fastest speed
+    profile the airframe's thrust allows and tracked with acceleration feedforward.
+
+    Planning (at reset): corridors at several clearances (:func:`~racebench.obstacles.find_corridor`), each
+    pulled taut between the gate centres (:func:`pull_taut`) and smoothed by descending bending energy under
+    clearance floors (:func:`relax`); the first candidate (shortest first) whose spline passes every
+    opening in order and stays :attr:`min_path_clearance` clear up to the finish is kept, otherwise the
+    cautious :class:`PlannerAgent` flies the episode. Speeds: the friction-circle minimum-time profile
+    (:func:`minimum_time_speeds`) under ``max_accel``, capped where the path runs close to something, with
+    acceleration changes spread over ``flip_time`` (:func:`limit_jerk`).
+
+    Tracking: cross-track PID + velocity loop around the curvature and speed-change feedforward read
+    ``anticipation`` seconds ahead, body-frame drag cancelled, altitude-first thrust while the body turns.
 
     Args:
-        max_accel: acceleration budget of the speed profile, m/s² (the airframe tops out near 14 m/s² in
-            every direction at full tilt: 24.1 m/s² of thrust less gravity; the rest is tracking headroom).
+        max_accel: acceleration budget of the speed profile, m/s². At full thrust the airframe has
+            24.1 m/s²; 10 m/s² in any direction leaves headroom for gravity, drag and the tracking loops.
         max_speed: speed cap, m/s.
-        clearance: distance the smoothed path keeps from all geometry, m.
+        clearance: the smoothed path's clearance floor away from gates, m (drone radius 0.12 plus margin).
+        wanted_clearance: the smoothing pushes the path away from obstacles closer than this, m.
+        position_gain, velocity_gain, integral_gain: tracking loop gains (1/s², 1/s, 1/s).
+        anticipation: how far ahead (s) the feedforward is read: the thrust direction lags the command.
+        attitude_gain: gain of the attitude loop that turns the wanted acceleration into body rates, 1/s.
+        flip_time: time over which the profile spreads a change of acceleration, s.
+        min_path_clearance: a planned path closer than this to anything (up to the finish) is rejected, m.
+        tight_speed, room_speed_gain: speed cap ``tight_speed + room_speed_gain · (clearance − min)``.
+        yaw_lookahead, max_yaw_error: heading target ``yaw_lookahead`` m ahead on the path, approached by at
+            most ``max_yaw_error`` rad of error at a time.
     """
 
     name = "planner-fast"
@@ -364,14 +391,18 @@ class FastPlannerAgent:
         max_accel: float = 10.0,
         max_speed: float = 12.0,
         clearance: float = 0.3,
-        wanted_clearance: float = 0.6,
+        wanted_clearance: float = 0.45,
         position_gain: float = 8.0,
-        velocity_gain: float = 5.0,
+        velocity_gain: float = 8.0,
         anticipation: float = 0.12,
         attitude_gain: float = 10.0,
         integral_gain: float = 4.0,
-        flip_time: float = 0.25,
+        flip_time: float = 0.1,
         min_path_clearance: float = 0.17,
+        tight_speed: float = 2.5,
+        room_speed_gain: float = 20.0,
+        yaw_lookahead: float = 1.5,
+        max_yaw_error: float = 0.5,
     ) -> None:
         self.max_accel = max_accel
         self.max_speed = max_speed
@@ -384,8 +415,11 @@ class FastPlannerAgent:
         self.integral_gain = integral_gain
         self.flip_time = flip_time
         self.min_path_clearance = min_path_clearance
+        self.tight_speed = tight_speed
+        self.room_speed_gain = room_speed_gain
+        self.yaw_lookahead = yaw_lookahead
+        self.max_yaw_error = max_yaw_error
         self.corridor_clearances = (clearance + 0.1, clearance, 0.24, 0.21)
-        self.drag_per_mass = 0.03 / 0.58  # the airframe's forward drag, for the speed profile
         self.env = None
         self._fallback = PlannerAgent()
         self.path: np.ndarray | None = None
@@ -410,7 +444,7 @@ class FastPlannerAgent:
         # Run on past the finish line: the lap ends at the last gate's plane, the tracker needs road ahead.
         return np.vstack([polyline, polyline[-1] + 2.0 * scene.gates[-1].normal])
 
-    def plan(self, scene, start: np.ndarray, start_speed: float = 0.0) -> bool:
+    def plan(self, scene, start: np.ndarray, start_speed: float = 0.0, params: QuadrotorParams | None = None) -> bool:
         """Plan for ``scene`` from ``start``; ``False`` when no candidate path passes the final checks.
 
         Candidates come from corridors at several clearances: a wide one can force a detour (even a
@@ -422,19 +456,26 @@ class FastPlannerAgent:
             if polyline is not None:
                 length = float(np.linalg.norm(np.diff(polyline, axis=0), axis=1).sum())
                 candidates.append((length - clearance, clearance, polyline))  # ties go to the wider berth
-        last = scene.gates[-1]
         for _, clearance, polyline in sorted(candidates, key=lambda c: c[0]):
             smooth = relax(scene, polyline, min(self.clearance, clearance), self.wanted_clearance)
             path, arc, tangent, curvature = _arc_length_spline(smooth, 0.05)
             # Check what will be flown: every opening in order, and clear of everything up to the finish.
-            if not passes_gates(path, scene.gates):
+            crossings = gate_crossings(path, scene.gates)
+            if len(crossings) < len(scene.gates):
                 continue
-            finish = int(np.argmax((path - last.center) @ last.normal >= 0.0))
-            if scene_clearance(scene, path[: finish + 1]).min() < self.min_path_clearance:
+            if scene_clearance(scene, path[: crossings[-1] + 2]).min() < self.min_path_clearance:
                 continue
-            self.path, self.arc, self.tangent, self.curvature = path, arc, tangent, curvature
-            drag = self.drag_per_mass
-            speeds = minimum_time_speeds(arc, curvature, self.max_accel, self.max_speed, start_speed, drag)
+            # The feedforward reads curvature; average it over ±0.15 m so spline wiggles do not jerk the
+            # thrust direction (the speed profile keeps the raw, larger values).
+            kernel = np.ones(7) / 7.0
+            smooth_curvature = np.stack([np.convolve(curvature[:, k], kernel, mode="same") for k in range(3)], 1)
+            self.path, self.arc, self.tangent, self.curvature = path, arc, tangent, smooth_curvature
+            params = params or QuadrotorParams()
+            drag = params.drag_coefficients[0] / params.mass  # forward drag eats into the acceleration budget
+            # Where the path runs close to something, fly slower: tracking error grows with speed.
+            room = scene_clearance(scene, path) - self.min_path_clearance
+            cap = np.minimum(self.max_speed, self.tight_speed + self.room_speed_gain * np.maximum(room, 0.0))
+            speeds = minimum_time_speeds(arc, curvature, self.max_accel, cap, start_speed, drag)
             self.speeds = limit_jerk(speeds, arc, self.flip_time)
             self._index = 0
             self._integral = np.zeros(3)
@@ -446,7 +487,7 @@ class FastPlannerAgent:
         if env is None:
             raise ValueError("FastPlannerAgent is privileged: reset(env) needs the unwrapped RaceEnv")
         self.env = env
-        if not self.plan(env.scene, env.drone.position, float(np.linalg.norm(env.drone.velocity))):
+        if not self.plan(env.scene, env.drone.position, float(np.linalg.norm(env.drone.velocity)), env.params):
             self.path = None
             self._fallback.reset(env)
 
@@ -465,10 +506,14 @@ class FastPlannerAgent:
         error -= (error @ t) * t  # cross-track only: progress is the projection
         v_ref = max(self.speeds[i], 1.0) * t  # never stall at the start, where the profile is 0
         # Feedforward from slightly ahead: thrust direction lags the command by the attitude loop.
-        j = min(int(np.searchsorted(self.arc, self.arc[i] + self.anticipation * max(self.speeds[i], 1.0))), len(self.arc) - 2)
+        ahead = self.arc[i] + self.anticipation * max(self.speeds[i], 1.0)
+        j = min(int(np.searchsorted(self.arc, ahead)), len(self.arc) - 2)
         ds = self.arc[j + 1] - self.arc[j]
         along = (self.speeds[j + 1] ** 2 - self.speeds[j] ** 2) / (2.0 * ds)
         feedforward = self.speeds[j] ** 2 * self.curvature[j] + along * self.tangent[j]
+        norm = float(np.linalg.norm(feedforward))
+        if norm > 1.2 * self.max_accel:
+            feedforward *= 1.2 * self.max_accel / norm
         # Cancel the airframe's quadratic drag (body axes) so the loops only fix what the model misses.
         rot = state.rotation
         v_body = rot.T @ vel
@@ -483,10 +528,12 @@ class FastPlannerAgent:
             + self.velocity_gain * (v_ref - vel)
         )
         yaw = math.atan2(state.rotation[1, 0], state.rotation[0, 0])
-        # Face where the path goes over the next ~1.5 m, not its local wiggles.
-        heading = self.path[min(i + 30, len(self.path) - 1)] - pos
+        # Face where the path goes over the next metres, not its local wiggles, and turn gently: a large
+        # yaw error saturates the rate command and couples into roll and pitch.
+        heading = self.path[min(i + int(self.yaw_lookahead / 0.05), len(self.path) - 1)] - pos
         if np.linalg.norm(heading[:2]) > 0.3:
-            yaw += float(np.clip(wrap_angle(math.atan2(heading[1], heading[0]) - yaw), -0.5, 0.5))
+            turn = wrap_angle(math.atan2(heading[1], heading[0]) - yaw)
+            yaw += float(np.clip(turn, -self.max_yaw_error, self.max_yaw_error))
         action = acceleration_to_ctbr(accel, yaw, rot, env.params, self.attitude_gain)
         # Altitude first: while the body turns toward a new thrust direction, the projection of the wanted
         # force on body z drops and the drone would sink; keep the vertical component instead.
