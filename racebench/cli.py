@@ -165,6 +165,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_distill.add_argument("--seed", type=int, default=0, help="training seed (< 1,000,000)")
     p_distill.add_argument("--out", default=None, help="run directory (default runs/vision-dagger-<track>-seed<seed>)")
     p_distill.add_argument("--eval-episodes", type=int, default=10, help="final evaluation episodes (0: none)")
+    p_distill.add_argument(
+        "--teacher", default="planner-fast", choices=["planner-fast", "planner"], help="privileged teacher"
+    )
 
     p_onnx = sub.add_parser("export-onnx", help="export an SB3 checkpoint's deterministic actor to ONNX")
     p_onnx.add_argument("checkpoint", help="SB3 / sb3-contrib .zip (feed-forward or racebench GRU policy)")
@@ -245,6 +248,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = DaggerConfig(
             track=args.track, iterations=args.iterations, steps_per_iteration=args.steps_per_iteration,
             n_envs=args.n_envs, seed=args.seed, epochs=args.epochs, max_samples=args.max_samples,
+            teacher=args.teacher,
         )  # fmt: skip
         try:
             config.validate()

@@ -115,9 +115,7 @@ class RecordWriter:
 
     def name(self, env_id: str, seed: int) -> str:
         """File name of the record of ``(env_id, seed)``."""
-        return record_name(
-            self.identity.sha256, env_id, ENV_VERSION, SEED_PROTOCOL, self.seed_set, seed, self.renderer
-        )
+        return record_name(self.identity.sha256, env_id, ENV_VERSION, SEED_PROTOCOL, self.seed_set, seed, self.renderer)
 
     def write(self, env_id: str, seed: int, result: dict[str, Any], flown: dict | None) -> str:
         """Seal and atomically write one episode's record; return its file name."""
@@ -335,9 +333,7 @@ class Evaluator:
         default = default_out_dir(self.agent_name, self.identity, seed_set)
         self.out_dir = Path(out_dir) if out_dir is not None else default
         self.records_dir = self.out_dir / "records"
-        self.writer = RecordWriter(
-            self.out_dir, self.identity, self.agent_name, renderer, seed_set, self.salt_sha256
-        )
+        self.writer = RecordWriter(self.out_dir, self.identity, self.agent_name, renderer, seed_set, self.salt_sha256)
         if force:
             self._clear()
         self.done = self._scan()

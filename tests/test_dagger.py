@@ -29,6 +29,8 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(beta_decay=1.5).validate()
     with pytest.raises(ValueError, match="seed"):
         DaggerConfig(seed=1_000_000).validate()
+    with pytest.raises(ValueError, match="teacher"):
+        DaggerConfig(teacher="hover").validate()  # not a privileged planner: cannot label every state
 
 
 def test_a_tiny_distillation_run(tmp_path: Path) -> None:
@@ -39,6 +41,6 @@ def test_a_tiny_distillation_run(tmp_path: Path) -> None:
     assert progress["samples"].tolist() == [256, 512]  # every step labelled, aggregated
     assert np.isfinite(progress["loss"]).all()
     saved = json.loads((tmp_path / "summary.json").read_text())
-    assert saved["teacher"] == "planner" and saved["eval"]["n"] == 1
+    assert saved["teacher"] == "planner-fast" and saved["eval"]["n"] == 1  # the fast expert by default
     agent = SB3Agent(summary["checkpoint"], trust_code=True)
     assert agent.obs_mode == "vision" and not agent.privileged

@@ -1,8 +1,9 @@
-"""Teacher–student distillation with DAgger: a depth policy imitates the privileged planner.
+"""Teacher–student distillation with DAgger: a depth policy imitates a privileged planner.
 
 The field's answer to the cost of learning vision-based flight from reward alone (Loquercio et al. 2021;
-Xing et al. 2024): a *teacher* with privileged information (here :class:`~racebench.planner.PlannerAgent`, which
-plans on the true scene) labels every state the *student* visits, and the student, which sees only what a
+Xing et al. 2024): a *teacher* with privileged information (the fast expert
+:class:`~racebench.planner.FastPlannerAgent` by default, or the cautious :class:`~racebench.planner.PlannerAgent`;
+both plan on the true scene) labels every state the *student* visits, and the student, which sees only what a
 deployed policy sees (the 17-d state and the noisy depth image), is trained by supervised regression on the
 aggregate of those labels (DAgger, Ross et al. 2011). The algorithm, in full:
 
@@ -32,9 +33,12 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from racebench.agents import load_agent
 from racebench.evaluation import EVAL_SEED_BASE
-from racebench.planner import PlannerAgent
+from racebench.planner import FastPlannerAgent, PlannerAgent
 from racebench.raycast import BatchDepthRenderer
+
+TEACHERS: tuple[str, ...] = ("planner-fast", "planner")  # privileged built-ins that can label every state
 
 
 @dataclass
@@ -54,6 +58,7 @@ class DaggerConfig:
     gate_shift: float = 0.3  # training scenes: gates shifted ±m, as in RL training (evaluation: none)
     seed: int = 0
     update_threads: int = 2
+    teacher: str = "planner-fast"  # a privileged built-in: "planner-fast" (the fast expert) or "planner"
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad setting."""
@@ -65,6 +70,7 @@ class DaggerConfig:
             (self.learning_rate > 0, "learning_rate must be > 0"),
             (self.max_samples >= self.batch_size, "max_samples must be >= batch_size"),
             (0 <= self.seed < EVAL_SEED_BASE, f"seed must be in [0, {EVAL_SEED_BASE})"),
+            (self.teacher in TEACHERS, f"teacher must be one of {TEACHERS}, got {self.teacher!r}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -115,7 +121,7 @@ def student_mean(policy: Any, obs: dict[str, torch.Tensor]) -> torch.Tensor:
 
 def collect(
     envs: list[Any],
-    teachers: list[PlannerAgent],
+    teachers: list[PlannerAgent | FastPlannerAgent],
     policy: Any,
     beta: float,
     steps: int,
@@ -209,7 +215,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10) -> d
         for _ in range(config.n_envs)
     ]
     envs = [m.unwrapped for m in made]
-    teachers = [PlannerAgent() for _ in envs]
+    teachers = [load_agent(config.teacher) for _ in envs]
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     policy_model = make_student(made[0], config.seed)
@@ -235,7 +241,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10) -> d
     checkpoint = out / f"vision-dagger-{config.track}.zip"
     summary: dict[str, Any] = {
         "method": "dagger",
-        "teacher": "planner",
+        "teacher": config.teacher,
         "config": asdict(config),
         "checkpoint": str(checkpoint),
         "wall_s": round(time.perf_counter() - started, 1),

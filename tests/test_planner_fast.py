@@ -1,0 +1,125 @@
+"""The fast privileged expert (``planner-fast``): speed profile from first principles, path checks, flight."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from racebench.agents import BUILTIN_PRIVILEGED, load_agent
+from racebench.planner import (
+    FastPlannerAgent,
+    PlannerAgent,
+    gate_crossings,
+    limit_jerk,
+    minimum_time_speeds,
+    pull_taut,
+    scene_clearance,
+)
+from racebench.rollout import run_episode
+from racebench.track import Gate
+
+
+def test_straight_line_from_rest_is_constant_acceleration():
+    # No curvature, no drag: the fastest profile from rest is v = sqrt(2 a s), capped at max_speed.
+    arc = np.arange(0.0, 20.0, 0.05)
+    v = minimum_time_speeds(arc, np.zeros((len(arc), 3)), max_accel=8.0, max_speed=12.0, start_speed=0.0)
+    expected = np.minimum(np.sqrt(2 * 8.0 * arc), 12.0)
+    np.testing.assert_allclose(v, expected, rtol=1e-9, atol=1e-9)
+
+
+def test_circle_speed_is_sqrt_a_r_and_braking_respects_the_budget():
+    # A straight run into a circle of radius 2: steady speed on the circle is sqrt(a R); before it the
+    # profile brakes at no more than the budget; nowhere does the total acceleration exceed it.
+    arc = np.arange(0.0, 30.0, 0.05)
+    curvature = np.zeros((len(arc), 3))
+    curvature[arc >= 15.0, 1] = 0.5
+    a_max = 9.0
+    v = minimum_time_speeds(arc, curvature, max_accel=a_max, max_speed=20.0, start_speed=0.0)
+    assert np.allclose(v[arc >= 15.0], math.sqrt(a_max * 2.0))
+    tangential = np.diff(v**2) / (2 * np.diff(arc))
+    lateral = v[:-1] ** 2 * np.linalg.norm(curvature[:-1], axis=1)
+    assert np.all(np.hypot(tangential, lateral) <= a_max * (1 + 1e-6) + 1e-9)
+    assert tangential.min() < -0.9 * a_max  # it does brake as hard as allowed before the turn
+
+
+def test_drag_lowers_the_forward_budget():
+    arc = np.arange(0.0, 40.0, 0.05)
+    free = minimum_time_speeds(arc, np.zeros((len(arc), 3)), 8.0, 30.0, 0.0)
+    dragged = minimum_time_speeds(arc, np.zeros((len(arc), 3)), 8.0, 30.0, 0.0, drag=0.05)
+    assert np.all(dragged <= free + 1e-12) and dragged[-1] < free[-1]
+    assert dragged[-1] < math.sqrt(8.0 / 0.05)  # terminal speed where drag eats the whole budget
+
+
+def test_limit_jerk_stays_below_the_profile_and_smooths_a_step():
+    arc = np.arange(0.0, 10.0, 0.05)
+    speeds = np.where((arc > 4.0) & (arc < 5.0), 2.0, 6.0)
+    smooth = limit_jerk(speeds, arc, window=0.2)
+    assert np.all(smooth <= speeds + 1e-12)
+    assert np.abs(np.diff(smooth)).max() < np.abs(np.diff(speeds)).max()
+
+
+def test_gate_crossings_count_only_the_opening_in_order():
+    gate = Gate(center=np.array([2.0, 0.0, 1.0]), yaw=0.0, inner=1.0, outer=1.28, depth=0.1)
+    through = np.array([[0.0, 0.0, 1.0], [1.9, 0.1, 1.0], [2.1, 0.1, 1.0], [4.0, 0.0, 1.0]])
+    beside = through + np.array([0.0, 0.8, 0.0])  # crosses the plane outside the opening
+    backwards = through[::-1]
+    assert gate_crossings(through, [gate]) == [1]
+    assert gate_crossings(beside, [gate]) == []
+    assert gate_crossings(backwards, [gate]) == []
+
+
+@pytest.fixture(scope="module")
+def s_env():
+    env = gym.make("RaceObs-S-v0", obs_mode="state")
+    yield env
+    env.close()
+
+
+def test_pull_taut_keeps_ends_and_clearance(s_env):
+    s_env.reset(seed=3)
+    scene = s_env.unwrapped.scene
+    planner = FastPlannerAgent()
+    polyline = planner._taut_corridor(scene, s_env.unwrapped.drone.position, 0.24)
+    assert polyline is not None
+    again = pull_taut(scene, polyline, 0.24)
+    np.testing.assert_array_equal(again[0], polyline[0])
+    np.testing.assert_array_equal(again[-1], polyline[-1])
+    dense = np.concatenate([np.linspace(a, b, 50) for a, b in zip(again[:-1], again[1:], strict=True)])
+    assert scene_clearance(scene, dense).min() >= 0.24 - 0.05 / 2  # proven at samples 0.05 apart
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_planned_path_threads_every_gate_and_stays_clear(s_env, seed):
+    s_env.reset(seed=seed)
+    env = s_env.unwrapped
+    planner = FastPlannerAgent()
+    assert planner.plan(env.scene, env.drone.position, 0.0, env.params)
+    crossings = gate_crossings(planner.path, env.scene.gates)
+    assert len(crossings) == len(env.scene.gates)
+    up_to_finish = planner.path[: crossings[-1] + 2]
+    assert scene_clearance(env.scene, up_to_finish).min() >= planner.min_path_clearance
+    # the speed profile never asks for more lateral acceleration than the budget
+    lateral = planner.speeds**2 * np.linalg.norm(planner.curvature, axis=1)
+    assert np.percentile(lateral, 99) <= 1.05 * planner.max_accel
+
+
+def test_planner_fast_is_a_privileged_builtin():
+    assert BUILTIN_PRIVILEGED["planner-fast"] is True
+    agent = load_agent("planner-fast")
+    assert isinstance(agent, FastPlannerAgent) and agent.privileged
+    with pytest.raises(ValueError, match="privileged"):
+        agent.reset(None)
+
+
+def test_planner_fast_flies_faster_than_the_cautious_planner(s_env):
+    # Outcome on a handful of scenes, stated loosely enough to hold on any CPU (closed loops amplify
+    # last-bit float differences): most laps finish, and they are clearly faster than the cautious planner's.
+    fast = [run_episode(FastPlannerAgent(), s_env, seed) for seed in range(1_000_000, 1_000_005)]
+    slow = [run_episode(PlannerAgent(), s_env, seed) for seed in range(1_000_000, 1_000_005)]
+    fast_laps = [r["lap_time"] for r in fast if r["success"]]
+    slow_laps = [r["lap_time"] for r in slow if r["success"]]
+    assert len(fast_laps) >= 4
+    assert np.mean(fast_laps) < 0.75 * np.mean(slow_laps)
