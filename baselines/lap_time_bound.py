@@ -1,0 +1,59 @@
+"""Lap-time bounds along planner-fast's racing line: how much of the gap to a target is the airframe's.
+
+For each scene, the fast expert's planned path (up to the finish crossing) is timed with the minimum-time
+speed profile of a point mass (friction circle, no drag, no attitude dynamics) at two acceleration budgets:
+the planner's own (10 m/s²) and the airframe's ceiling in the horizontal plane at full thrust,
+``sqrt((T_max/m)² − g²)`` ≈ 22 m/s². The second is a lower bound on any lap flown along that line; a target
+below it would be infeasible on that line, a target above it leaves the gap to path shape and tracking.
+
+    python baselines/lap_time_bound.py --episodes 20 > baselines/experiments/lap_time_bound.txt
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import gymnasium as gym
+import numpy as np
+
+import racebench  # noqa: F401  (registers the ids)
+from racebench.evaluation import eval_seeds
+from racebench.planner import FastPlannerAgent, gate_crossings, minimum_time_speeds
+
+
+def lap_time(arc: np.ndarray, speeds: np.ndarray) -> float:
+    """Time to travel a sampled path at the given speeds: ``2 ds / (v_i + v_{i+1})`` per segment, exact under
+    constant acceleration (and finite from rest, unlike the mean of ``1/v``)."""
+    return float(np.sum(2.0 * np.diff(arc) / np.maximum(speeds[1:] + speeds[:-1], 1e-9)))
+
+
+def main() -> None:
+    """Print per-track means of the planned profile's time and the two point-mass bounds."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", type=int, default=20, help="evaluation seeds per main id")
+    args = parser.parse_args()
+    print("env_id, n, planned profile (s), point mass at 10 m/s^2 (s), point mass at airframe ceiling (s)")
+    for track in ("S", "Circle", "J"):
+        env = gym.make(f"RaceObs-{track}-v0", obs_mode="state")
+        unwrapped = env.unwrapped
+        params = unwrapped.params
+        ceiling = math.sqrt((params.max_thrust / params.mass) ** 2 - params.gravity**2)
+        rows = []
+        for seed in eval_seeds(args.episodes):
+            env.reset(seed=seed)
+            planner = FastPlannerAgent()
+            if not planner.plan(unwrapped.scene, unwrapped.drone.position, 0.0, params):
+                continue
+            end = gate_crossings(planner.path, unwrapped.scene.gates)[-1] + 2
+            arc, curvature = planner.arc[:end], planner.curvature[:end]
+            bound_10 = minimum_time_speeds(arc, curvature, 10.0, 1e3, 0.0)
+            bound_top = minimum_time_speeds(arc, curvature, ceiling, 1e3, 0.0)
+            rows.append((lap_time(arc, planner.speeds[:end]), lap_time(arc, bound_10), lap_time(arc, bound_top)))
+        env.close()
+        mean = np.mean(rows, axis=0)
+        print(f"RaceObs-{track}-v0, {len(rows)}, {mean[0]:.2f}, {mean[1]:.2f}, {mean[2]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
