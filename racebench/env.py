@@ -30,10 +30,31 @@ from racebench.track import Track, load_track
 OBS_MODES: tuple[str, ...] = ("vision", "state")
 RENDERERS: tuple[str, ...] = ("pybullet", "raycast")
 START_MODES: tuple[str, ...] = ("track", "gates")
+#: ``"float32"``: depth (1, 64, 64) in [0, 1], the paper's and the default; ``"uint8"``: the same image as
+#: (64, 64, 1) uint8 in [0, 255], the layout and dtype stable-baselines3 recognises as an image (NatureCNN).
+DEPTH_FORMATS: tuple[str, ...] = ("float32", "uint8")
 STATE_DIM = 17
 POSITION_SCALE = 10.0  # m per unit
 VELOCITY_SCALE = 10.0  # m/s per unit
 STATE_LIMIT = 5.0  # |state| is clipped here: 50 m, 50 m/s, 5x the max body rate
+
+
+def depth_to_uint8(depth: np.ndarray) -> np.ndarray:
+    """Float depth ``(..., 1, H, W)`` in [0, 1] → ``(..., H, W, 1)`` uint8 in [0, 255], rounded to nearest.
+
+    The ``depth_format="uint8"`` observation is exactly this function of the float one (same noise draws), so
+    a policy trained on uint8 depth can be flown on the float envs by converting (:class:`racebench.agents.SB3Agent`
+    does), with identical inputs.
+    """
+    scaled = np.asarray(depth, dtype=np.float32) * np.float32(255.0) + np.float32(0.5)
+    return np.ascontiguousarray(np.moveaxis(scaled.astype(np.uint8), -3, -1))
+
+
+def depth_space(size: int, depth_format: str = "float32") -> spaces.Box:
+    """The ``depth`` observation space of a ``size``×``size`` camera in ``depth_format`` (see DEPTH_FORMATS)."""
+    if depth_format == "uint8":
+        return spaces.Box(0, 255, shape=(size, size, 1), dtype=np.uint8)
+    return spaces.Box(0.0, 1.0, shape=(1, size, size), dtype=np.float32)
 
 
 def state_space() -> spaces.Box:
@@ -52,7 +73,8 @@ class RaceEnv(gym.Env):
         (x, y, z, w with w ≥ 0), body rates (/max body rate per axis); clipped to ±5 (quaternion ±1).
       * ``depth`` (1×64×64 float32 in [0, 1]): normalised inverse depth ``0.2 m / depth`` from a camera
         0.1 m ahead of the body centre along body x, 90° FOV, range 0.2–10 m, Gaussian noise
-        ``depth_noise_std``; see :class:`~racebench.camera.DepthCamera`.
+        ``depth_noise_std``; see :class:`~racebench.camera.DepthCamera`. With ``depth_format="uint8"`` the
+        same image as 64×64×1 uint8 (:func:`depth_to_uint8`).
 
     Action: CTBR in ``[-1, 1]^4`` (collective thrust, roll/pitch/yaw rate), see
     :mod:`racebench.quadrotor`. The rate controller, motors and drag run at ``physics_freq``.
@@ -96,6 +118,9 @@ class RaceEnv(gym.Env):
             ``info["start_gate"]`` is ``k``, so only ``k = 0`` episodes are laps).
         gate_shift_z: ± half-range of the gates' vertical shift in m (default ``gate_shift``; the paper trains
             with ±1 m on x/y and ±0.3 m on z).
+        depth_format: ``"float32"`` (the default and the paper's: ``(1, 64, 64)`` in [0, 1]) or ``"uint8"``
+            (``(64, 64, 1)`` in [0, 255], :func:`depth_to_uint8` of the float image), which stable-baselines3's
+            ``CnnPolicy`` / ``MultiInputPolicy`` treat as an image and give a NatureCNN.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
@@ -119,12 +144,15 @@ class RaceEnv(gym.Env):
         renderer: str = "pybullet",
         start_mode: str = "track",
         gate_shift_z: float | None = None,
+        depth_format: str = "float32",
     ) -> None:
         super().__init__()
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
         if start_mode not in START_MODES:
             raise ValueError(f"start_mode must be one of {START_MODES}, got {start_mode!r}")
+        if depth_format not in DEPTH_FORMATS:
+            raise ValueError(f"depth_format must be one of {DEPTH_FORMATS}, got {depth_format!r}")
         if renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -180,6 +208,7 @@ class RaceEnv(gym.Env):
         self.quad = Quadrotor(self.params)
         self.start_mode = start_mode
         self.obs_mode = obs_mode
+        self.depth_format = depth_format
         self.render_mode = render_mode
         self.desired_speed = float(desired_speed)
         self.control_freq = control_freq
@@ -190,9 +219,9 @@ class RaceEnv(gym.Env):
         self.metadata = {**self.metadata, "render_fps": control_freq}
 
         self.action_space = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
-        depth_space = spaces.Box(0.0, 1.0, shape=(1, self.camera.size, self.camera.size), dtype=np.float32)
+        depth = depth_space(self.camera.size, depth_format)
         self.observation_space = (
-            spaces.Dict({"state": state_space(), "depth": depth_space}) if obs_mode == "vision" else state_space()
+            spaces.Dict({"state": state_space(), "depth": depth}) if obs_mode == "vision" else state_space()
         )
         self.sim = Simulation(self.track, self.params, physics_freq)
         self.scene: Scene | None = None  # geometry of the current episode (plain data)
@@ -450,7 +479,10 @@ class RaceEnv(gym.Env):
             return state
         if depth is None:
             depth = self.depth_image()
-        return {"state": state, "depth": self.camera.normalise(depth, self.np_random)}
+        image = self.camera.normalise(depth, self.np_random)
+        if self.depth_format == "uint8":
+            image = depth_to_uint8(image)
+        return {"state": state, "depth": image}
 
     def _observation(self) -> Any:
         return self.observation()

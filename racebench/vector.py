@@ -35,6 +35,8 @@ from gymnasium.vector.utils import batch_space
 
 from racebench.env import STATE_DIM, RaceEnv
 
+#: ``multiprocessing.RawArray`` type codes of the depth dtypes (``depth_format``) held in shared memory.
+_TYPECODES: dict[str, str] = {"float32": "f", "uint8": "B"}
 GYM_INFOS, SB3_INFOS = "gym", "sb3"  # info formats: Gymnasium's dict of arrays with "_key" masks; SB3's list of dicts
 
 
@@ -127,7 +129,8 @@ class EnvBatch:
     one :class:`~racebench.raycast.BatchDepthRenderer` call per step.
 
     Observations are written into caller-owned arrays (shared memory in a worker process): ``state``
-    ``(n, 17)`` float32 and, for ``obs_mode="vision"``, ``depth`` ``(n, 1, size, size)`` float32.
+    ``(n, 17)`` float32 and, for ``obs_mode="vision"``, ``depth`` ``(n, *depth space shape)`` of the depth
+    space's dtype (``(n, 1, size, size)`` float32, or ``(n, size, size, 1)`` uint8 with ``depth_format="uint8"``).
 
     Args:
         env_kwargs: one ``RaceEnv`` kwargs dict per env (same observation mode and camera for all).
@@ -144,16 +147,19 @@ class EnvBatch:
     ) -> None:
         self.envs = [RaceEnv(**kw) for kw in env_kwargs]
         first = self.envs[0]
-        if any(e.obs_mode != first.obs_mode or e.renderer != first.renderer for e in self.envs):
-            raise ValueError("all envs of a vector env need the same obs_mode and renderer")
+        if any(
+            (e.obs_mode, e.renderer, e.depth_format) != (first.obs_mode, first.renderer, first.depth_format)
+            for e in self.envs
+        ):
+            raise ValueError("all envs of a vector env need the same obs_mode, renderer and depth_format")
         n = len(self.envs)
         self.autoreset_mode = autoreset_mode
         self.vision = first.obs_mode == "vision"
-        size = first.camera.size
         self.state = np.zeros((n, STATE_DIM), dtype=np.float32) if state is None else state
         self.depth = None
         if self.vision:
-            self.depth = np.zeros((n, 1, size, size), dtype=np.float32) if depth is None else depth
+            space = first.observation_space["depth"]
+            self.depth = np.zeros((n, *space.shape), dtype=space.dtype) if depth is None else depth
         self.raycaster = None
         if self.vision and first.renderer == "raycast":
             from racebench.raycast import BatchDepthRenderer
@@ -273,15 +279,16 @@ def _worker(
     offset: int,
     total: int,
     state_shape: tuple[int, ...],
-    depth_shape: tuple[int, ...] | None,
+    depth_layout: tuple[tuple[int, ...], str] | None,
 ) -> None:
     """Worker process: owns an :class:`EnvBatch` writing into its slice of the shared observation arrays."""
     try:
         n = len(env_kwargs)
         state = np.frombuffer(buffers[0], dtype=np.float32).reshape(total, *state_shape)[offset : offset + n]
         depth = None
-        if depth_shape is not None:
-            depth = np.frombuffer(buffers[1], dtype=np.float32).reshape(total, *depth_shape)[offset : offset + n]
+        if depth_layout is not None:
+            shape, dtype = depth_layout
+            depth = np.frombuffer(buffers[1], dtype=dtype).reshape(total, *shape)[offset : offset + n]
         batch = EnvBatch(env_kwargs, autoreset_mode, state, depth)
         conn.send(("ok", os.getpid()))
     except Exception:  # report to the parent, which raises
@@ -325,7 +332,7 @@ class _Backend:
         num_processes: int,
         context: str | None,
         state_shape: tuple[int, ...],
-        depth_shape: tuple[int, ...] | None,
+        depth_layout: tuple[tuple[int, ...], str] | None,
     ) -> None:
         n = len(env_kwargs)
         self.info_format = info_format
@@ -337,22 +344,26 @@ class _Backend:
         buffers: tuple[Any, Any] = (None, None)
         if num_processes == 1:
             self.state = np.zeros((n, *state_shape), dtype=np.float32)
-            self.depth = np.zeros((n, *depth_shape), dtype=np.float32) if depth_shape is not None else None
+            self.depth = None
+            if depth_layout is not None:
+                self.depth = np.zeros((n, *depth_layout[0]), dtype=depth_layout[1])
         else:
             if context is None:  # as SB3's SubprocVecEnv: fork is unsafe with threads (torch, numba)
                 context = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
             ctx = mp.get_context(context)
             state_buf = ctx.RawArray("f", n * int(np.prod(state_shape)))
-            depth_buf = ctx.RawArray("f", n * int(np.prod(depth_shape))) if depth_shape is not None else None
+            depth_buf = None
+            self.depth = None
+            if depth_layout is not None:
+                shape, dtype = depth_layout
+                depth_buf = ctx.RawArray(_TYPECODES[dtype], n * int(np.prod(shape)))
+                self.depth = np.frombuffer(depth_buf, dtype=dtype).reshape(n, *shape)
             buffers = (state_buf, depth_buf)
             self.state = np.frombuffer(state_buf, dtype=np.float32).reshape(n, *state_shape)
-            self.depth = None
-            if depth_buf is not None:
-                self.depth = np.frombuffer(depth_buf, dtype=np.float32).reshape(n, *depth_shape)
             for offset, size in zip(self.offsets[1:], self.sizes[1:], strict=True):
                 parent, child = ctx.Pipe()
                 chunk = env_kwargs[offset : offset + size]
-                args = (child, chunk, autoreset_mode, info_format, buffers, offset, n, state_shape, depth_shape)
+                args = (child, chunk, autoreset_mode, info_format, buffers, offset, n, state_shape, depth_layout)
                 process = ctx.Process(target=_worker, args=args, daemon=True)
                 process.start()
                 child.close()
@@ -475,9 +486,12 @@ def make_backend(
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
     if isinstance(num_processes, bool) or not isinstance(num_processes, int) or not 1 <= num_processes <= num_envs:
         raise ValueError(f"num_processes must be an int in [1, num_envs={num_envs}], got {num_processes!r}")
-    depth_shape = (1, probe.camera.size, probe.camera.size) if probe.obs_mode == "vision" else None
+    depth_layout = None
+    if probe.obs_mode == "vision":
+        space = probe.observation_space["depth"]
+        depth_layout = (tuple(space.shape), np.dtype(space.dtype).name)
     kwargs = [dict(env_kwargs) for _ in range(num_envs)]
-    return _Backend(kwargs, autoreset_mode, info_format, num_processes, context, (STATE_DIM,), depth_shape)
+    return _Backend(kwargs, autoreset_mode, info_format, num_processes, context, (STATE_DIM,), depth_layout)
 
 
 def probe_env(env_kwargs: dict[str, Any]) -> RaceEnv:

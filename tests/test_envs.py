@@ -239,3 +239,40 @@ def test_copies_and_pickles_are_refused_with_a_way_out() -> None:
 def test_bad_values_are_named(kwargs: dict, named: str) -> None:
     with pytest.raises(ValueError, match=f"^{named} must"):
         gym.make("RaceObs-S-v0", **kwargs)
+
+
+# ------------------------------------------------------- uint8 depth (stock SB3)
+
+
+@pytest.mark.parametrize("env_id", ["RaceObs-S-v0", "RaceObs-J-Level1-v0"])
+def test_uint8_depth_passes_both_checkers_without_a_warning(env_id: str) -> None:
+    import warnings
+
+    env = gym.make(env_id, depth_format="uint8")
+    assert env.observation_space["depth"] == gym.spaces.Box(0, 255, (64, 64, 1), np.uint8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the float format's "not an image" warning must be gone
+        sb3_check_env(env.unwrapped, warn=True)
+    gym_check_env(env.unwrapped)
+    env.close()
+
+
+def test_uint8_depth_is_the_float_image_rounded_and_deterministic() -> None:
+    from racebench.env import depth_to_uint8
+
+    small, plain = gym.make("RaceObs-S-v0", depth_format="uint8"), gym.make("RaceObs-S-v0")
+    a, b = rollout(small, seed=5, steps=40), rollout(plain, seed=5, steps=40)
+    assert len(a) == len(b)
+    for got, float_step in zip(a, b, strict=True):
+        obs, float_obs = got[0], float_step[0]
+        assert obs["depth"].dtype == np.uint8 and obs["depth"].shape == (64, 64, 1)
+        np.testing.assert_array_equal(obs["depth"], depth_to_uint8(float_obs["depth"]))
+        np.testing.assert_array_equal(obs["state"], float_obs["state"])
+        assert_same(got[1:], float_step[1:])  # rewards, flags and infos do not depend on the format
+    first = b[0][0]["depth"]  # rounded to the nearest of 256 levels
+    assert np.abs(depth_to_uint8(first) / 255.0 - first[0, :, :, None]).max() <= 0.5 / 255 + 1e-6
+    assert_same(rollout(small, seed=5, steps=40), rollout(gym.make("RaceObs-S-v0", depth_format="uint8"), 5, 40))
+    small.close()
+    plain.close()
+    with pytest.raises(ValueError, match="^depth_format must"):
+        gym.make("RaceObs-S-v0", depth_format="float16")

@@ -189,3 +189,18 @@ def test_stack_and_concat_infos_follow_gymnasium() -> None:
     reference.close()
     # Joining slices equals stacking all at once.
     assert_same(stack_infos(infos, 4), concat_infos([stack_infos(infos[:1], 1), stack_infos(infos[1:], 3)], [1, 3]))
+
+
+def test_uint8_depth_vector_env_equals_sync_vector_env() -> None:
+    n, kwargs = 3, {**KWARGS, "depth_format": "uint8"}
+    actions = random_actions(60, n, seed=2)
+    reference = SyncVectorEnv([lambda: RaceEnv(**kwargs) for _ in range(n)])
+    venv = RaceVectorEnv(n, num_processes=2, **kwargs)  # uint8 shared memory from the worker
+    try:
+        assert venv.single_observation_space == reference.single_observation_space
+        got = run_gym(venv, actions, seed=13)
+        assert got[0][0]["depth"].dtype == np.uint8 and got[0][0]["depth"].shape == (n, 64, 64, 1)
+        assert_same(run_gym(reference, actions, seed=13), got)
+    finally:
+        venv.close()
+        reference.close()
