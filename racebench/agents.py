@@ -29,6 +29,8 @@ import hashlib
 import importlib
 import importlib.util
 import io
+import pickle
+import re
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -105,6 +107,31 @@ def _python_source(spec: str) -> Path:
     return path
 
 
+def vecnormalize_path(checkpoint: str | Path) -> Path | None:
+    """The ``VecNormalize`` statistics saved beside an SB3 checkpoint, or ``None``.
+
+    SB3's ``VecNormalize.save`` takes any path; the usual places are the ones looked at here:
+    ``<prefix>_vecnormalize_<n>_steps.pkl`` beside ``<prefix>_<n>_steps.zip`` (``CheckpointCallback`` with
+    ``save_vecnormalize=True``) and, for any other name, ``vecnormalize.pkl`` in the checkpoint's folder
+    (rl-baselines3-zoo's name, and ``racebench train``'s).
+    """
+    path = Path(checkpoint)
+    periodic = re.fullmatch(r"(.*)_(\d+)_steps\.zip", path.name)
+    if periodic:
+        stats = path.with_name(f"{periodic[1]}_vecnormalize_{periodic[2]}_steps.pkl")
+    else:
+        stats = path.parent / "vecnormalize.pkl"
+    return stats if stats.is_file() else None
+
+
+def sb3_policy_sha256(checkpoint_sha256: str, stats_sha256: str | None) -> str:
+    """The policy hash of an SB3 checkpoint: its bytes' sha256, or with ``VecNormalize`` statistics beside it
+    (they change the actions), the sha256 of ``"<checkpoint sha256>+vecnormalize:<statistics sha256>"``."""
+    if stats_sha256 is None:
+        return checkpoint_sha256
+    return hashlib.sha256(f"{checkpoint_sha256}+vecnormalize:{stats_sha256}".encode()).hexdigest()
+
+
 def policy_identity(spec: str) -> PolicyIdentity:
     """The :class:`PolicyIdentity` of an agent spec, computed from the file's bytes without running any of it."""
     if spec in BUILTIN_AGENTS:
@@ -113,7 +140,13 @@ def policy_identity(spec: str) -> PolicyIdentity:
         path = Path(spec)
         if not path.is_file():
             raise AgentLoadError(f"policy file {spec!r} does not exist")
-        return PolicyIdentity("sb3" if spec.endswith(".zip") else "onnx", _sha256_bytes(path.read_bytes()), spec, False)
+        digest = _sha256_bytes(path.read_bytes())
+        if spec.endswith(".onnx"):
+            return PolicyIdentity("onnx", digest, spec, False)
+        stats = vecnormalize_path(path)
+        return PolicyIdentity(
+            "sb3", sb3_policy_sha256(digest, _sha256_bytes(stats.read_bytes()) if stats else None), spec, False
+        )
     if ":" in spec:
         return PolicyIdentity("python", _sha256_bytes(_python_source(spec).read_bytes()), spec, False)
     raise AgentLoadError(
@@ -217,6 +250,13 @@ class SB3Agent:
 
     Recurrent policies (sb3-contrib ``RecurrentPPO``, or any policy whose ``predict`` takes a state) have
     their hidden state carried across steps and cleared at each episode start.
+
+    Observations reach the policy as they did in training: a policy trained on ``depth_format="uint8"``
+    gets each float depth image through :func:`racebench.env.depth_to_uint8` (the uint8 envs' own
+    observation), and ``VecNormalize`` statistics saved beside the checkpoint (:func:`vecnormalize_path`)
+    normalise the observations as ``VecNormalize.normalize_obs`` does. The statistics file is a pickle, so it
+    needs ``trust_code`` even beside a shipped checkpoint, and its hash is part of :attr:`sha256`
+    (:func:`sb3_policy_sha256`); :attr:`checkpoint_sha256` is the zip's alone.
     """
 
     privileged = False
@@ -226,17 +266,34 @@ class SB3Agent:
         if not path.is_file():
             raise AgentLoadError(f"SB3 checkpoint {str(path)!r} does not exist")
         data = path.read_bytes()  # hashed and loaded from the same bytes: no swap between check and load
-        self.sha256 = _sha256_bytes(data)
+        self.checkpoint_sha256 = _sha256_bytes(data)
+        stats_path = vecnormalize_path(path)
+        stats = stats_path.read_bytes() if stats_path is not None else None
+        self.sha256 = sb3_policy_sha256(self.checkpoint_sha256, _sha256_bytes(stats) if stats is not None else None)
         if not zipfile.is_zipfile(io.BytesIO(data)):
             raise AgentLoadError(f"SB3 checkpoint {str(path)!r} is not a zip archive (corrupt or not a checkpoint)")
-        if not (trust_code or self.sha256 in TRUSTED_CHECKPOINTS):
+        if not (trust_code or self.checkpoint_sha256 in TRUSTED_CHECKPOINTS):
             raise _refuse_untrusted(str(path), "an SB3 checkpoint is unpickled when loaded")
+        if stats is not None and not trust_code:
+            raise _refuse_untrusted(str(stats_path), "VecNormalize statistics beside the checkpoint are unpickled")
         self.model = self._load(path, device, data)
         self.name = path.stem
         self.obs_mode = _obs_mode_of(self.model.observation_space)
+        self.normalizer = _load_vecnormalize(stats_path, stats) if stats is not None else None
+        self.uint8_depth = self.obs_mode == "vision" and self.model.observation_space["depth"].dtype == np.uint8
         self.recurrent = "Recurrent" in type(self.model.policy).__name__ or hasattr(self.model.policy, "recurrent")
         self.state: Any = None
         self.episode_start = np.ones((1,), dtype=bool)
+
+    def prepare(self, obs: Any) -> Any:
+        """One observation (or a stacked batch) of the standard envs → what the policy was trained on."""
+        if self.uint8_depth:
+            from racebench.env import depth_to_uint8
+
+            obs = {**obs, "depth": depth_to_uint8(obs["depth"])}
+        if self.normalizer is not None:
+            obs = self.normalizer.normalize_obs(obs)
+        return obs
 
     @staticmethod
     def _load(path: Path, device: str, raw: bytes | None = None) -> Any:
@@ -297,7 +354,7 @@ class SB3Agent:
         import torch
 
         policy = self.model.policy
-        obs, _ = policy.obs_to_tensor(_stack(observations, self.obs_mode))
+        obs, _ = policy.obs_to_tensor(self.prepare(_stack(observations, self.obs_mode)))
         with torch.no_grad():  # not inference_mode: RaceFeatures converts its CNN weights on first use
             if self.recurrent:
                 starts = torch.from_numpy(self.batch_starts)
@@ -314,6 +371,7 @@ class SB3Agent:
 
     def act(self, obs: Any) -> np.ndarray:
         """Deterministic action of the policy."""
+        obs = self.prepare(obs)
         if self.recurrent:
             action, self.state = self.model.predict(
                 obs, state=self.state, episode_start=self.episode_start, deterministic=True
@@ -322,6 +380,20 @@ class SB3Agent:
         else:
             action, _ = self.model.predict(obs, deterministic=True)
         return action
+
+
+def _load_vecnormalize(path: Path, data: bytes) -> Any:
+    """The observation normaliser of a trusted ``VecNormalize`` pickle, or ``None`` if it normalises rewards only."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    try:
+        normalizer = pickle.loads(data)  # noqa: S301 - the caller checked trust_code; VecNormalize.load does this
+    except Exception as exc:  # noqa: BLE001 - unpickling raises many kinds on a damaged file
+        raise AgentLoadError(f"VecNormalize statistics {str(path)!r} could not be read: {exc}") from exc
+    if not isinstance(normalizer, VecNormalize):
+        raise AgentLoadError(f"{str(path)!r} holds a {type(normalizer).__name__}, not SB3 VecNormalize statistics")
+    # Reward statistics alone (racebench train's) do not touch what the policy sees.
+    return normalizer if normalizer.norm_obs else None
 
 
 class OnnxAgent:
