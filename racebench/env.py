@@ -86,7 +86,7 @@ class RaceEnv(gym.Env):
     sphere swept along each physics substep comes within 1 mm of it, by exact geometry: see
     :mod:`racebench.collision`) or on leaving the arena; ``truncated`` at ``max_episode_time``. A gate is
     passed by crossing its plane inside the opening on a substep that touched nothing. ``info``:
-    ``is_success``, ``lap_time`` (s, successful episodes only, else ``None``), ``gates_passed``, ``crashed``,
+    ``is_success``, ``lap_time`` (s; present only once the lap is done), ``gates_passed``, ``crashed``,
     ``crash_reason`` (``"gate:<i>"``, ``"obstacle:<j>"``, ``"ground"``, ``"out_of_bounds"``), ``reward_terms``,
     ``time``, ``start_gate`` (the first gate to pass: 0 unless ``start_mode="gates"``).
 
@@ -488,9 +488,8 @@ class RaceEnv(gym.Env):
         return self.observation()
 
     def _info(self, terms: dict[str, float]) -> dict[str, Any]:
-        return {
+        info = {
             "is_success": self.lap_time is not None,
-            "lap_time": self.lap_time,
             "gates_passed": self.next_gate - self.start_gate,
             "crashed": self.crash_reason is not None,
             "crash_reason": self.crash_reason,
@@ -498,6 +497,13 @@ class RaceEnv(gym.Env):
             "time": self.time,
             "start_gate": self.start_gate,
         }
+        # lap_time only once there is one (Gymnasium's idiom for occasional infos): a float or nothing, so its
+        # vector form is float64 with a "_lap_time" mask in every vectorization mode. A None here would make
+        # SyncVectorEnv's array an object array or a float one depending on which env comes first, and a NaN
+        # fails Gymnasium's own determinism check (NaN != NaN).
+        if self.lap_time is not None:
+            info["lap_time"] = self.lap_time
+        return info
 
     # ------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:
