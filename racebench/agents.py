@@ -12,7 +12,8 @@ Spec strings accepted by :func:`load_agent`:
 * ``path/to/model.zip``: a stable-baselines3 / sb3-contrib checkpoint (recurrent policies included);
 * ``path/to/policy.onnx``: an ONNX policy run with onnxruntime (no code from the file runs), see
   :class:`OnnxAgent` for the expected inputs and outputs and :func:`export_onnx` to make one;
-* ``package.module:ClassName`` or ``path/to/file.py:ClassName``: a Python class built with no arguments.
+* ``package.module:ClassName`` or ``path/to/file.py:ClassName``: a Python class, built with the keyword
+  arguments ``agent_kwargs`` (``--agent-kwargs '{"k": 1}'``; none by default), which must declare ``obs_mode``.
 
 **Untrusted code is refused by default.** Loading an SB3 ``.zip`` unpickles Python objects (which can run
 arbitrary code) and a ``module:Class`` spec imports and runs a module, so both need ``trust_code=True``
@@ -29,6 +30,7 @@ import hashlib
 import importlib
 import importlib.util
 import io
+import json
 import pickle
 import re
 import zipfile
@@ -132,8 +134,35 @@ def sb3_policy_sha256(checkpoint_sha256: str, stats_sha256: str | None) -> str:
     return hashlib.sha256(f"{checkpoint_sha256}+vecnormalize:{stats_sha256}".encode()).hexdigest()
 
 
-def policy_identity(spec: str) -> PolicyIdentity:
-    """The :class:`PolicyIdentity` of an agent spec, computed from the file's bytes without running any of it."""
+def parse_agent_kwargs(text: str | None) -> dict[str, Any] | None:
+    """The ``--agent-kwargs`` option: a JSON object of constructor keyword arguments (``None`` if not given)."""
+    if text is None:
+        return None
+    try:
+        kwargs = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise AgentLoadError(f"--agent-kwargs {text!r} is not valid JSON: {exc}") from exc
+    if not isinstance(kwargs, dict):
+        raise AgentLoadError(f"--agent-kwargs must be a JSON object such as '{{\"k\": 1}}', got {text!r}")
+    return kwargs
+
+
+def _kwargs_json(agent_kwargs: dict[str, Any]) -> str:
+    """Canonical JSON of constructor arguments (sorted keys, no spaces): the form that is hashed."""
+    try:
+        return json.dumps(agent_kwargs, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise AgentLoadError(f"agent kwargs must be plain JSON values: {exc}") from exc
+
+
+def policy_identity(spec: str, agent_kwargs: dict[str, Any] | None = None) -> PolicyIdentity:
+    """The :class:`PolicyIdentity` of an agent spec, computed from the file's bytes without running any of it.
+
+    A ``module:Class`` built with ``agent_kwargs`` is another policy than the same class without them: its hash
+    is the sha256 of ``"<file sha256>+kwargs:<canonical JSON>"``.
+    """
+    if agent_kwargs and ":" not in spec:
+        raise AgentLoadError(f"agent kwargs apply to module:Class and file.py:Class agents only, not {spec!r}")
     if spec in BUILTIN_AGENTS:
         return builtin_identity(spec)
     if spec.endswith(".zip") or spec.endswith(".onnx"):
@@ -148,7 +177,10 @@ def policy_identity(spec: str) -> PolicyIdentity:
             "sb3", sb3_policy_sha256(digest, _sha256_bytes(stats.read_bytes()) if stats else None), spec, False
         )
     if ":" in spec:
-        return PolicyIdentity("python", _sha256_bytes(_python_source(spec).read_bytes()), spec, False)
+        digest = _sha256_bytes(_python_source(spec).read_bytes())
+        if agent_kwargs:
+            digest = hashlib.sha256(f"{digest}+kwargs:{_kwargs_json(agent_kwargs)}".encode()).hexdigest()
+        return PolicyIdentity("python", digest, spec, False)
     raise AgentLoadError(
         f"unknown agent spec {spec!r}: expected one of {BUILTIN_AGENTS}, a .zip (SB3) or .onnx file, or module:Class"
     )
@@ -536,7 +568,7 @@ def export_onnx(model: Any, path: str | Path) -> Path:
     return path
 
 
-def _python_agent(spec: str, trust_code: bool = False) -> Any:
+def _python_agent(spec: str, trust_code: bool = False, agent_kwargs: dict[str, Any] | None = None) -> Any:
     target, _, cls_name = spec.rpartition(":")
     _python_source(spec)  # a missing file or module is named before the trust question
     if not trust_code:
@@ -558,7 +590,15 @@ def _python_agent(spec: str, trust_code: bool = False) -> Any:
     cls = getattr(module, cls_name, None)
     if cls is None:
         raise AgentLoadError(f"agent spec {spec!r}: {target!r} has no attribute {cls_name!r}")
-    agent = cls()
+    kwargs = agent_kwargs or {}
+    try:
+        agent = cls(**kwargs)
+    except TypeError as exc:  # wrong or missing constructor arguments: say which, and how to pass them
+        raise AgentLoadError(
+            f"agent spec {spec!r}: {cls_name}(**{kwargs}) failed: {exc} (pass its arguments with --agent-kwargs JSON)"
+        ) from exc
+    except Exception as exc:  # noqa: BLE001 - any constructor failure, reported with the spec
+        raise AgentLoadError(f"agent spec {spec!r}: {cls_name}(**{kwargs}) raised {type(exc).__name__}: {exc}") from exc
     for attr in ("reset", "act"):
         if not callable(getattr(agent, attr, None)):
             raise AgentLoadError(f"agent spec {spec!r}: {cls_name} has no method {attr}()")
@@ -576,13 +616,16 @@ def _python_agent(spec: str, trust_code: bool = False) -> Any:
     return agent
 
 
-def load_agent(spec: str, trust_code: bool = False) -> Agent:
+def load_agent(spec: str, trust_code: bool = False, agent_kwargs: dict[str, Any] | None = None) -> Agent:
     """Build an agent from a spec string (see the module docstring).
 
     ``trust_code`` allows specs that run code from a file (SB3 ``.zip`` outside :data:`TRUSTED_CHECKPOINTS`,
     ``module:Class``, ``file.py:Class``); without it they raise :class:`UntrustedCodeError` before any of
-    that code runs.
+    that code runs. ``agent_kwargs`` are the keyword arguments of a ``module:Class`` constructor (an error for
+    any other spec).
     """
+    if agent_kwargs and ":" not in spec:
+        raise AgentLoadError(f"agent kwargs apply to module:Class and file.py:Class agents only, not {spec!r}")
     if spec == "random":
         return RandomAgent()
     if spec == "hover":
@@ -598,7 +641,9 @@ def load_agent(spec: str, trust_code: bool = False) -> Agent:
     if spec.endswith(".onnx"):
         return OnnxAgent(spec)
     if ":" in spec:
-        return _python_agent(spec, trust_code)
+        if agent_kwargs:
+            _kwargs_json(agent_kwargs)  # plain JSON values only: they are hashed into the policy identity
+        return _python_agent(spec, trust_code, agent_kwargs)
     raise AgentLoadError(
         f"unknown agent spec {spec!r}: expected one of {BUILTIN_AGENTS}, a .zip (SB3) or .onnx file, or module:Class"
     )

@@ -159,12 +159,15 @@ class RecordWriter:
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(agent_spec: str, renderer: str, trust_code: bool, threads: int) -> None:
+def _worker_init(
+    agent_spec: str, renderer: str, trust_code: bool, threads: int, agent_kwargs: dict[str, Any] | None = None
+) -> None:
     _close_pool()
     if not _WORKER.get("atexit"):
         atexit.register(_close_pool)  # a worker process's envs, at its exit
         _WORKER["atexit"] = True
-    _WORKER.update(agent=load_agent(agent_spec, trust_code=trust_code), renderer=renderer, pool={})
+    agent = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs)
+    _WORKER.update(agent=agent, renderer=renderer, pool={})
     torch = sys.modules.get("torch")  # imported by learned agents only; built-ins need not pay for it
     if torch is not None:
         torch.set_num_threads(threads)
@@ -272,6 +275,7 @@ class Evaluator:
         force: discard every record already in ``out_dir`` (whatever produced it) and evaluate afresh.
         batch: episodes a process flies in lockstep with one batched policy call per step (agents that
             support it: SB3 and ONNX); 1 flies one episode at a time.
+        agent_kwargs: constructor keyword arguments of a ``module:Class`` agent (part of its policy identity).
     """
 
     def __init__(
@@ -287,6 +291,7 @@ class Evaluator:
         trust_code: bool = False,
         force: bool = False,
         batch: int = DEFAULT_BATCH,
+        agent_kwargs: dict[str, Any] | None = None,
     ) -> None:
         from racebench.env import RENDERERS
 
@@ -306,8 +311,9 @@ class Evaluator:
         self.save_trajectories = save_trajectories
         self.renderer = renderer
         self.trust_code = trust_code
-        probe = load_agent(agent_spec, trust_code=trust_code)  # fail fast, in this process, on a bad spec
-        self.identity = policy_identity(agent_spec)
+        self.agent_kwargs = agent_kwargs
+        probe = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs)  # fail fast, here
+        self.identity = policy_identity(agent_spec, agent_kwargs)
         if getattr(probe, "sha256", self.identity.sha256) != self.identity.sha256:
             raise ValueError(f"{agent_spec!r} changed while it was being loaded")
         self.agent_name = agent_name or probe.name
@@ -379,7 +385,7 @@ class Evaluator:
         tasks = [todo[i : i + size] for i in range(0, len(todo), size)]
         if self.workers == 1 or len(tasks) <= 1:
             with SingleTorchThread():
-                _worker_init(self.agent_spec, self.renderer, self.trust_code, torch_threads())
+                _worker_init(self.agent_spec, self.renderer, self.trust_code, torch_threads(), self.agent_kwargs)
                 try:
                     for task in tasks:
                         self.done.update(_fly(task, self.writer, self.batch, self.save_trajectories))
@@ -393,7 +399,7 @@ class Evaluator:
                 self.workers,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=_worker_init,
-                initargs=(self.agent_spec, self.renderer, self.trust_code, 1),
+                initargs=(self.agent_spec, self.renderer, self.trust_code, 1, self.agent_kwargs),
             ) as pool:
                 futures = {
                     pool.submit(_fly, task, self.writer, self.batch, self.save_trajectories): len(task)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -173,7 +174,13 @@ def plot_track_3d(
 
 
 def render_episode_gif(
-    agent_spec: str, env_id: str, seed: int, path: str | Path, fps: int = 25, trust_code: bool = False
+    agent_spec: str,
+    env_id: str,
+    seed: int,
+    path: str | Path,
+    fps: int = 25,
+    trust_code: bool = False,
+    agent_kwargs: dict[str, Any] | None = None,
 ) -> Path:
     """Fly one episode and write a GIF: chase-camera view beside the onboard inverse-depth image."""
     import gymnasium as gym
@@ -181,7 +188,7 @@ def render_episode_gif(
     from racebench.agents import load_agent
     from racebench.evaluation import SingleTorchThread, run_episode
 
-    agent = load_agent(agent_spec, trust_code=trust_code)
+    agent = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs)
     env = gym.make(env_id, render_mode="rgb_array", obs_mode="vision")
     frames: list[Image.Image] = []
     every = max(1, round(env.unwrapped.control_freq / fps))
