@@ -186,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_onnx.add_argument("--trust-code", action="store_true", help="allow a checkpoint outside the shipped ones")
 
     p_bench = sub.add_parser("bench", help="throughput: depth frames/s of both renderers, env steps/s, memory")
-    p_bench.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds (a smoke test)")
+    p_bench.add_argument("--quick", action="store_true", help="smoke test of ~10 s (tiny sizes)")
     p_bench.add_argument("--out", default="bench.csv", help="CSV of every measurement (default bench.csv)")
     p_bench.add_argument("--track", default="S", choices=["S", "J", "Circle"], help="track of every env (default S)")
     p_bench.add_argument("--num-envs", type=int, default=None, help="envs of each vector-env run (default 32)")
