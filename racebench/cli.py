@@ -124,14 +124,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     p_plot = sub.add_parser("plot", help="figures from result directories: SR by track, vs density, vs gate shift")
     p_plot.add_argument("results", nargs="+", help="result directories or summary.csv files")
-    p_plot.add_argument("--out", default="results/figures", help="output directory for PNGs")
+    p_plot.add_argument(
+        "--out", default="runs/figures", help="output directory (default runs/figures, outside version control)"
+    )
     p_plot.add_argument("--track-env", default=None, help="also draw the 3D track plot of this env id (Fig. 4)")
+    p_plot.add_argument("--format", default="png", choices=("png", "pdf", "svg"), help="file format (default png)")
+    p_plot.add_argument("--dpi", type=int, default=300, help="resolution of PNGs in dots per inch (default 300)")
     p_curves = sub.add_parser(
         "curves", help="training curves (the paper's Fig. 5) from `racebench train` run directories"
     )
     p_curves.add_argument("runs", nargs="+", help="run directories or their progress.csv files")
-    p_curves.add_argument("--out", default="results/figures/training_curves.png", help="output PNG")
+    p_curves.add_argument(
+        "--out",
+        default="runs/figures/training_curves.png",
+        help="output file, .png, .pdf or .svg (default under runs/)",
+    )
     p_curves.add_argument("--smooth", type=int, default=20, help="rolling mean over this many updates (default 20)")
+    p_curves.add_argument("--dpi", type=int, default=300, help="resolution of a PNG in dots per inch (default 300)")
 
     p_render = sub.add_parser("render", help="write a GIF of one episode: chase view beside the FPV depth image")
     p_render.add_argument("--agent", default="planner", help=f"{AGENT_HELP} (default: planner)")
@@ -287,23 +296,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     elif args.command == "plot":
         from racebench import plots
 
+        if not 20 <= args.dpi <= 2400:
+            raise SystemExit(f"racebench plot: --dpi must be in [20, 2400], got {args.dpi}")
         summary = _summaries(args.results, "plot")
-        out = Path(args.out)
+        out, fmt, dpi = Path(args.out), args.format, args.dpi
         written = []
         for name, make in (
-            ("success_by_track.png", lambda p: plots.plot_success_by_track(summary, p)),
-            ("success_vs_density.png", lambda p: plots.plot_success_vs(summary, "density", p)),
-            ("success_vs_gate_shift.png", lambda p: plots.plot_success_vs(summary, "gates", p)),
+            ("success_by_track", lambda p: plots.plot_success_by_track(summary, p, dpi)),
+            ("success_vs_density", lambda p: plots.plot_success_vs(summary, "density", p, dpi)),
+            ("success_vs_gate_shift", lambda p: plots.plot_success_vs(summary, "gates", p, dpi)),
         ):
             try:
-                written.append(make(out / name))
+                written.append(make(out / f"{name}.{fmt}"))
             except ValueError as exc:  # a figure whose results are absent is skipped, with the reason
                 log.warning(f"skipped {name}: {exc}")
         if args.track_env:
             source = next((Path(r) for r in args.results if (Path(r) / "trajectories").is_dir()), None)
             if source is None:
                 raise SystemExit("racebench plot: --track-env needs a result directory made with --save-trajectories")
-            written.append(plots.plot_track_3d(source, args.track_env, out / f"track_{args.track_env}.png"))
+            try:
+                written.append(
+                    plots.plot_track_3d(source, args.track_env, out / f"track_{args.track_env}.{fmt}", dpi=dpi)
+                )
+            except ValueError as exc:
+                raise SystemExit(f"racebench plot: {exc}") from exc
         for path in written:
             log.info(f"wrote {path}")
         if not written:
@@ -312,7 +328,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from racebench.plots import plot_training_curves
 
         try:
-            log.info(f"wrote {plot_training_curves(args.runs, args.out, args.smooth)}")
+            log.info(f"wrote {plot_training_curves(args.runs, args.out, args.smooth, args.dpi)}")
         except ValueError as exc:
             raise SystemExit(f"racebench curves: {exc}") from exc
     elif args.command == "render":

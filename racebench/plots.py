@@ -14,11 +14,21 @@ matplotlib.use("Agg")  # files only; never needs a display
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
+from matplotlib.transforms import Bbox  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from racebench.evaluation import TRACK_ORDER  # noqa: E402
 from racebench.registration import DENSITIES, GATE_SHIFTS  # noqa: E402
 from racebench.tables import TRACK_NAMES  # noqa: E402
+
+#: File formats of the figures (matplotlib picks the writer from the suffix) and the default resolution of PNGs.
+FIGURE_FORMATS: tuple[str, ...] = ("png", "pdf", "svg")
+DEFAULT_DPI = 300
+NOT_EVALUATED = "n/e"  # the label of a bar slot whose cell has no results
+_LABEL_BOX = {"facecolor": "white", "edgecolor": "none", "pad": 0.6}  # a label stays legible over an error bar
 
 
 def _label(agent: str, privileged: bool) -> str:
@@ -30,8 +40,14 @@ def _agents(summary: pd.DataFrame) -> list[tuple[str, bool]]:
     return sorted(((str(a), bool(p)) for a, p in pairs), key=lambda x: (x[1], x[0]))
 
 
-def plot_success_by_track(summary: pd.DataFrame, path: str | Path) -> Path:
-    """Grouped bars: SR per track and agent with 95 % Wilson intervals (privileged agents hatched)."""
+def plot_success_by_track(summary: pd.DataFrame, path: str | Path, dpi: int = DEFAULT_DPI) -> Path:
+    """Grouped bars: SR per track and agent with 95 % Wilson intervals (privileged agents hatched), written to
+    ``path`` (PNG, PDF or SVG by its suffix). A 0 % cell is labelled "0 %", a cell without results "n/e"."""
+    return _save(success_by_track_figure(summary), path, dpi)
+
+
+def success_by_track_figure(summary: pd.DataFrame) -> Any:
+    """The figure of :func:`plot_success_by_track` (legend outside the axes, so it never hides a bar)."""
     main = summary[summary["variant"] == "default"]
     if main.empty:
         raise ValueError("no results on the main ids (RaceObs-{S,J,Circle}-v0) to plot")
@@ -39,13 +55,15 @@ def plot_success_by_track(summary: pd.DataFrame, path: str | Path) -> Path:
     width = 0.8 / len(agents)
     fig, ax = plt.subplots(figsize=(1.8 + 1.6 * len(TRACK_ORDER), 3.4))
     x = np.arange(len(TRACK_ORDER))
+    missing = False
     for i, (agent, privileged) in enumerate(agents):
         rows = [main[(main["agent"] == agent) & (main["track"] == t)] for t in TRACK_ORDER]
         sr = np.array([100 * r["success_rate"].iloc[0] if len(r) else np.nan for r in rows])
         low = np.array([100 * r["sr_ci_low"].iloc[0] if len(r) else np.nan for r in rows])
         high = np.array([100 * r["sr_ci_high"].iloc[0] if len(r) else np.nan for r in rows])
-        ax.bar(
-            x + (i - (len(agents) - 1) / 2) * width,
+        centres = x + (i - (len(agents) - 1) / 2) * width
+        bars = ax.bar(
+            centres,
             sr,
             width,
             yerr=[sr - low, high - sr],
@@ -55,17 +73,28 @@ def plot_success_by_track(summary: pd.DataFrame, path: str | Path) -> Path:
             edgecolor="black",
             linewidth=0.5,
         )
+        # A 0 % bar has no height and an absent cell draws nothing: without a label the two look the same.
+        for centre, value, bar in zip(centres, sr, bars, strict=True):
+            if np.isnan(value):
+                missing = True
+                ax.text(centre, 1.5, NOT_EVALUATED, ha="center", va="bottom", fontsize=7, color="0.4", style="italic")
+            elif value == 0:
+                ax.plot([centre - width / 2, centre + width / 2], [0, 0], color=bar.get_facecolor(), linewidth=3)
+                ax.text(centre, 1.5, "0 %", ha="center", va="bottom", fontsize=7, bbox=_LABEL_BOX)
     ax.set_xticks(x, [TRACK_NAMES[t] for t in TRACK_ORDER])
     ax.set_ylabel("success rate [%]")
     ax.set_ylim(0, 105)
+    ax.set_xlim(-0.5, len(TRACK_ORDER) - 0.5)
     n = int(main["n"].min())
     ax.set_title(f"Success rate, 95% Wilson CI (n ≥ {n} per cell)", fontsize=10)
-    ax.legend(fontsize=8, loc="lower right")
+    legend = ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    if missing:
+        legend.set_title(f"{NOT_EVALUATED}: not evaluated", prop={"size": 7, "style": "italic"})
     ax.grid(axis="y", alpha=0.3)
-    return _save(fig, path)
+    return fig
 
 
-def plot_success_vs(summary: pd.DataFrame, factor: str, path: str | Path) -> Path:
+def plot_success_vs(summary: pd.DataFrame, factor: str, path: str | Path, dpi: int = DEFAULT_DPI) -> Path:
     """SR vs obstacle density (``factor="density"``) or gate shift (``"gates"``), one panel per track."""
     if factor == "density":
         xs, xlabel = list(DENSITIES), "obstacles per 2 gates"
@@ -92,11 +121,11 @@ def plot_success_vs(summary: pd.DataFrame, factor: str, path: str | Path) -> Pat
         ax.set_title(TRACK_NAMES[track], fontsize=10)
         ax.set_xlabel(xlabel)
         ax.set_xticks(xs)
-        ax.set_ylim(0, 105)
+        ax.set_ylim(-4, 105)  # a 0 % point shows whole, not cut in half by the axis
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("success rate [%] (95% CI)")
-    axes[-1].legend(fontsize=8, loc="lower left")
-    return _save(fig, path)
+    axes[-1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)  # off the curves
+    return _save(fig, path, dpi)
 
 
 def _draw_scene(ax, scene: dict) -> None:
@@ -129,7 +158,12 @@ def _draw_scene(ax, scene: dict) -> None:
 
 
 def plot_track_3d(
-    out_dir: str | Path, env_id: str, path: str | Path, agent: str | None = None, seed: int | None = None
+    out_dir: str | Path,
+    env_id: str,
+    path: str | Path,
+    agent: str | None = None,
+    seed: int | None = None,
+    dpi: int = DEFAULT_DPI,
 ) -> Path:
     """The paper's Fig. 4: gates, obstacles and flown trajectories of one env id (needs saved trajectories).
 
@@ -149,7 +183,7 @@ def plot_track_3d(
     runs = [run for run in runs if run[0]["seed"] == seed]  # one scene: trajectories of other seeds flew others
     if not runs:
         raise ValueError(f"no trajectory of {env_id!r} with seed {seed} in {str(out_dir)!r}")
-    fig = plt.figure(figsize=(7, 5.5))
+    fig = plt.figure(figsize=(7.5, 4.6))
     ax = fig.add_subplot(projection="3d")
     _draw_scene(ax, runs[0][2])
     for row, positions, _ in runs:
@@ -163,14 +197,35 @@ def plot_track_3d(
     ax.set_xlim(low[0], high[0])
     ax.set_ylim(low[1], high[1])
     ax.set_zlim(0, high[2])
-    ax.set_box_aspect(high - low)
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_zlabel("z [m]")
+    # A narrow track gets a thin box: give the short axes a floor so their ticks and labels have room.
+    span = high - low
+    ax.set_box_aspect(np.maximum(span, 0.35 * span.max()), zoom=0.98)
+    ax.set_proj_type("ortho")  # no perspective: heights and gate sizes compare across the track
+    for axis, shortest in ((ax.xaxis, span[0]), (ax.yaxis, span[1]), (ax.zaxis, span[2])):
+        axis.set_major_locator(MaxNLocator(5 if shortest >= 0.6 * span.max() else 3))
+    ax.view_init(elev=28, azim=-62)
+    ax.set_xlabel("x [m]", labelpad=10)
+    ax.set_ylabel("y [m]", labelpad=6)
+    ax.set_zlabel("z [m]", labelpad=4)
     k = sum(bool(r["success"]) for r, _, _ in runs)
     who = agent or ", ".join(sorted({r["agent"] for r, _, _ in runs}))
     ax.set_title(f"{env_id}, seed {seed}: {who} ({k}/{len(runs)} successful)", fontsize=9)
-    return _save(fig, path)
+    handles = [
+        Line2D([], [], color="tab:orange", linewidth=2, label="gate"),
+        Patch(facecolor="tab:blue", alpha=0.35, label="obstacle"),
+        Line2D([], [], color="tab:green", marker="o", linestyle="", label="start"),
+        Line2D([], [], color="tab:green", label="successful flight"),
+    ]
+    if k < len(runs):
+        handles.append(Line2D([], [], color="tab:red", linestyle=":", marker="x", label="failed flight (x: end)"))
+    legend = ax.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(0.0, 0.95), frameon=False)
+    # Crop to what is drawn: a 3D axes' own box (which "tight" keeps) is mostly blank below the track.
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    parts = [axis.get_tightbbox(renderer) for axis in (ax.xaxis, ax.yaxis, ax.zaxis)]
+    parts += [ax.title.get_window_extent(renderer), legend.get_window_extent(renderer)]
+    drawn = Bbox.union([b for b in parts if b is not None and b.width > 0])
+    return _save(fig, path, dpi, bbox=drawn.transformed(fig.dpi_scale_trans.inverted()).padded(0.18))
 
 
 def render_episode_gif(
@@ -225,7 +280,7 @@ def _compose(rgb: np.ndarray, depth: np.ndarray) -> Image.Image:
     return canvas
 
 
-def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int = 20) -> Path:
+def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int = 20, dpi: int = DEFAULT_DPI) -> Path:
     """The paper's Fig. 5 from training runs: mean episode return (rolling mean over ``smooth`` updates),
     success rate from the track start, and curriculum level, against environment steps.
 
@@ -260,13 +315,26 @@ def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int =
     axes[2].set_xlabel("environment steps [millions]")
     for ax in axes:
         ax.grid(alpha=0.3)
-    return _save(fig, path)
+    return _save(fig, path, dpi)
 
 
-def _save(fig, path: str | Path) -> Path:
+def _save(fig, path: str | Path, dpi: int = DEFAULT_DPI, bbox: Bbox | None = None) -> Path:
+    """Write ``fig`` to ``path`` in the format of its suffix (see FIGURE_FORMATS), cropped to what is drawn
+    (``bbox``, in inches, where matplotlib's own "tight" box would keep blank space)."""
     path = Path(path)
+    fmt = path.suffix.lower().lstrip(".")
+    if fmt not in FIGURE_FORMATS:
+        plt.close(fig)
+        raise ValueError(
+            f"{str(path)!r}: figures are written as {', '.join(FIGURE_FORMATS)}, not {fmt or 'no suffix'!r}"
+        )
+    if isinstance(dpi, bool) or not isinstance(dpi, int) or not 20 <= dpi <= 2400:
+        plt.close(fig)
+        raise ValueError(f"dpi must be an int in [20, 2400], got {dpi!r}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=150)
+    if not any(getattr(ax, "name", "") == "3d" for ax in fig.axes):  # tight_layout cannot place 3D axes
+        fig.tight_layout()
+    # "tight" crops the blank margin and keeps legends placed outside the axes.
+    fig.savefig(path, dpi=dpi, bbox_inches=bbox or "tight", pad_inches=0.05)
     plt.close(fig)
     return path
