@@ -305,6 +305,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             ("success_by_track", lambda p: plots.plot_success_by_track(summary, p, dpi)),
             ("success_vs_density", lambda p: plots.plot_success_vs(summary, "density", p, dpi)),
             ("success_vs_gate_shift", lambda p: plots.plot_success_vs(summary, "gates", p, dpi)),
+            ("success_by_level", lambda p: plots.plot_success_vs(summary, "levels", p, dpi)),
         ):
             try:
                 written.append(make(out / f"{name}.{fmt}"))

@@ -21,7 +21,7 @@ from matplotlib.transforms import Bbox  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from racebench.evaluation import TRACK_ORDER  # noqa: E402
-from racebench.registration import DENSITIES, GATE_SHIFTS  # noqa: E402
+from racebench.registration import CURRICULUM, DENSITIES, GATE_SHIFTS  # noqa: E402
 from racebench.tables import TRACK_NAMES  # noqa: E402
 
 #: File formats of the figures (matplotlib picks the writer from the suffix) and the default resolution of PNGs.
@@ -95,15 +95,19 @@ def success_by_track_figure(summary: pd.DataFrame) -> Any:
 
 
 def plot_success_vs(summary: pd.DataFrame, factor: str, path: str | Path, dpi: int = DEFAULT_DPI) -> Path:
-    """SR vs obstacle density (``factor="density"``) or gate shift (``"gates"``), one panel per track."""
+    """SR vs obstacle density (``factor="density"``), gate shift (``"gates"``) or curriculum level (``"levels"``,
+    the ``-Level{1,2,3}`` ids), one panel per track; a level, density or shift without results is left out."""
     if factor == "density":
         xs, xlabel = list(DENSITIES), "obstacles per 2 gates"
         variants = [f"Density{d}" for d in DENSITIES]
     elif factor == "gates":
         xs, xlabel = [float(s) for s in GATE_SHIFTS], "gate shift ±[m]"
         variants = [f"GateShift{s}" for s in GATE_SHIFTS]
+    elif factor == "levels":
+        xs, xlabel = sorted(CURRICULUM), "curriculum level"
+        variants = [f"Level{level}" for level in xs]
     else:
-        raise ValueError(f"factor must be 'density' or 'gates', got {factor!r}")
+        raise ValueError(f"factor must be 'density', 'gates' or 'levels', got {factor!r}")
     data = summary[summary["variant"].isin(variants)]
     if data.empty:
         raise ValueError(f"no results on the {factor} variants to plot")
@@ -118,6 +122,8 @@ def plot_success_vs(summary: pd.DataFrame, factor: str, path: str | Path, dpi: i
             style = "--" if privileged else "-"
             (line,) = ax.plot(xs, sr, style, marker="o", label=_label(agent, privileged))
             ax.fill_between(xs, low, high, color=line.get_color(), alpha=0.15)
+        if data[data["track"] == track].empty:  # say so, rather than leave a panel that looks like a failure
+            ax.text(0.5, 0.5, "not evaluated", transform=ax.transAxes, ha="center", color="0.4", style="italic")
         ax.set_title(TRACK_NAMES[track], fontsize=10)
         ax.set_xlabel(xlabel)
         ax.set_xticks(xs)
@@ -280,39 +286,73 @@ def _compose(rgb: np.ndarray, depth: np.ndarray) -> Image.Image:
     return canvas
 
 
+#: SB3's own CSV logger (``configure(folder, ["csv"])``): its column for each of racebench's progress columns.
+SB3_PROGRESS_COLUMNS: dict[str, str] = {
+    "time/total_timesteps": "timesteps",
+    "rollout/ep_rew_mean": "mean_return",
+    "rollout/success_rate": "success_rate",
+}
+
+
+def read_progress(csv_path: str | Path) -> pd.DataFrame:
+    """A training run's ``progress.csv`` as ``timesteps``, ``mean_return``, ``success_rate``, ``level``.
+
+    Either ``racebench train``'s file or SB3's own (``time/total_timesteps``, ``rollout/ep_rew_mean`` and,
+    when the env reports ``is_success``, ``rollout/success_rate``; it has no curriculum level, which is NaN).
+    """
+    progress = pd.read_csv(csv_path)
+    if {"time/total_timesteps", "rollout/ep_rew_mean"} <= set(progress.columns):
+        progress = progress.rename(columns=SB3_PROGRESS_COLUMNS)
+        for column in ("success_rate", "level"):
+            if column not in progress:
+                progress[column] = np.nan
+        # SB3 logs a row per update; ep_rew_mean stays empty until the first episode has ended.
+        return progress.sort_values("timesteps").reset_index(drop=True)
+    missing = {"timesteps", "mean_return", "success_rate", "level"} - set(progress.columns)
+    if missing:
+        raise ValueError(
+            f"{csv_path}: missing columns {sorted(missing)} (neither racebench train's progress.csv nor SB3's)"
+        )
+    return progress
+
+
 def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int = 20, dpi: int = DEFAULT_DPI) -> Path:
     """The paper's Fig. 5 from training runs: mean episode return (rolling mean over ``smooth`` updates),
     success rate from the track start, and curriculum level, against environment steps.
 
-    ``runs``: run directories (holding ``progress.csv``) or ``progress.csv`` files; each is labelled by its
-    ``config.yaml`` name when present, else by its directory name.
+    ``runs``: run directories (holding ``progress.csv``) or ``progress.csv`` files, of ``racebench train`` or of
+    SB3's CSV logger (:func:`read_progress`); each is labelled by its ``config.yaml`` name when present, else by
+    its directory name. The level panel is left out when no run has a curriculum.
     """
     import yaml
 
-    fig, axes = plt.subplots(3, 1, figsize=(6.4, 6.4), sharex=True, height_ratios=[2, 1.4, 1])
+    loaded = []
     for run in runs:
         run = Path(run)
         csv_path = run / "progress.csv" if run.is_dir() else run
         if not csv_path.is_file():
             raise ValueError(f"{run}: no progress.csv (is it a `racebench train` run directory?)")
-        progress = pd.read_csv(csv_path)
-        missing = {"timesteps", "mean_return", "success_rate", "level"} - set(progress.columns)
-        if missing:
-            raise ValueError(f"{csv_path}: missing columns {sorted(missing)}")
         config = csv_path.parent / "config.yaml"
         label = yaml.safe_load(config.read_text()).get("name") if config.is_file() else csv_path.parent.name
+        loaded.append((label, read_progress(csv_path)))
+    levels = any(progress["level"].notna().any() for _, progress in loaded)
+    rows, ratios = (3, [2, 1.4, 1]) if levels else (2, [2, 1.4])
+    fig, axes = plt.subplots(rows, 1, figsize=(6.4, 6.4 if levels else 5.0), sharex=True, height_ratios=ratios)
+    for label, progress in loaded:
         steps = progress["timesteps"] / 1e6
         window = dict(window=smooth, min_periods=1)
         (line,) = axes[0].plot(steps, progress["mean_return"].rolling(**window).mean(), label=label)
         axes[1].plot(steps, 100 * progress["success_rate"].rolling(**window).mean(), color=line.get_color())
-        axes[2].step(steps, progress["level"], where="post", color=line.get_color())
+        if levels:
+            axes[2].step(steps, progress["level"], where="post", color=line.get_color())
     axes[0].set_ylabel("mean episode return")
     axes[0].legend(loc="best", fontsize=8)
-    axes[1].set_ylabel("success from start [%]")
+    axes[1].set_ylabel("success from start [%]" if levels else "success rate [%]")
     axes[1].set_ylim(-2, 102)
-    axes[2].set_ylabel("level")
-    axes[2].set_yticks([1, 2, 3])
-    axes[2].set_xlabel("environment steps [millions]")
+    if levels:
+        axes[2].set_ylabel("level")
+        axes[2].set_yticks([1, 2, 3])
+    axes[-1].set_xlabel("environment steps [millions]")
     for ax in axes:
         ax.grid(alpha=0.3)
     return _save(fig, path, dpi)

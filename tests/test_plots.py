@@ -70,3 +70,36 @@ def test_plot_writes_outside_the_committed_figures_by_default(tmp_path: Path, mo
     assert committed == {p: p.stat().st_mtime_ns for p in (ROOT / "results" / "figures").iterdir()}
     with pytest.raises(SystemExit, match="--dpi"):
         cli.main(["-q", "plot", *RESULTS, "--dpi", "0"])
+
+
+def test_curves_read_sb3s_own_progress_csv(tmp_path: Path) -> None:
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import configure
+
+    run = tmp_path / "sb3-run"
+    model = PPO("MlpPolicy", gym.make("RaceObs-S-Level1-v0", obs_mode="state"), n_steps=128, batch_size=64,
+                n_epochs=1, seed=0, policy_kwargs={"net_arch": [8]}, device="cpu")  # fmt: skip
+    model.set_logger(configure(str(run), ["csv"]))
+    model.learn(384)
+    progress = plots.read_progress(run / "progress.csv")
+    assert progress["timesteps"].tolist() == [128, 256, 384]
+    assert progress["mean_return"].notna().any() and progress["level"].isna().all()
+    assert "rollout/success_rate" in (run / "progress.csv").read_text()  # the env's is_success reaches SB3
+    out = plots.plot_training_curves([run], tmp_path / "curves.pdf")
+    assert out.read_bytes().startswith(b"%PDF")
+    assert cli.main(["-q", "curves", str(run), "--out", str(tmp_path / "c.png"), "--dpi", "60"]) == 0
+    with pytest.raises(SystemExit, match="^racebench curves: .*png, pdf, svg"):
+        cli.main(["-q", "curves", str(run), "--out", str(tmp_path / "c.jpg")])
+
+
+def test_curriculum_ids_are_plotted_when_present(tmp_path: Path) -> None:
+    evals = [str(ROOT / "baselines/checkpoints" / name / "eval") for name in ("vision-ppo-S", "state-ppo-S")]
+    assert cli.main(["-q", "plot", *evals, "--out", str(tmp_path), "--dpi", "60"]) == 0
+    assert (tmp_path / "success_by_level.png").is_file()
+    summary = read_summaries(evals)
+    fig_path = plots.plot_success_vs(summary, "levels", tmp_path / "levels.svg")
+    text = fig_path.read_text()
+    assert "curriculum level" in text and "not evaluated" in text  # Circle and J have no level results here
+    with pytest.raises(ValueError, match="no results on the levels variants"):
+        plots.plot_success_vs(read_summaries(RESULTS), "levels", tmp_path / "none.png")
