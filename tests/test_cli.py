@@ -18,8 +18,22 @@ LEVEL1 = "RaceObs-S-Level1-v0"
 
 
 def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
-    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    return dict(action.choices)
+    """The parser's sub-commands by name ({} for a leaf)."""
+    action = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+    return dict(action.choices) if action is not None else {}
+
+
+def commands(
+    parser: argparse.ArgumentParser, path: tuple[str, ...] = ()
+) -> dict[tuple[str, ...], argparse.ArgumentParser]:
+    """Every leaf command (``("evaluate",)``, or nested as ``("leaderboard", "add")``) and its parser."""
+    subs = subcommands(parser)
+    if not subs:
+        return {path: parser}
+    found: dict[tuple[str, ...], argparse.ArgumentParser] = {}
+    for name, sub in subs.items():
+        found.update(commands(sub, (*path, name)))
+    return found
 
 
 def options(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
@@ -28,34 +42,43 @@ def options(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
 
 def test_every_option_has_help_text() -> None:
     parser = cli.build_parser()
+    every = [(("racebench",), parser), *commands(parser).items()]
     missing = [
-        f"{name} {action.option_strings or action.dest}"
-        for name, sub in [("racebench", parser), *subcommands(parser).items()]
+        f"{' '.join(path)} {action.option_strings or action.dest}"
+        for path, sub in every
         for action in sub._actions
         if not isinstance(action, argparse._SubParsersAction) and not (action.help or "").strip()
     ]
     assert not missing, f"options without help: {missing}"
 
 
-def readme_commands() -> dict[str, str]:
-    """Command name -> the synopsis in the README's command table (``\\|`` unescaped)."""
+def readme_commands(parser: argparse.ArgumentParser) -> dict[tuple[str, ...], str]:
+    """Command path -> the synopsis in the README's command table (``\\|`` unescaped); the path follows the
+    parser's sub-commands through the synopsis' words (``racebench leaderboard add ...``)."""
     text = (ROOT / "README.md").read_text()
     section = text.split("\n## Command line\n", 1)[1].split("\n## ", 1)[0]
     rows = re.findall(r"^\| `(racebench [^`]*)` \|", section, re.M)
     assert rows, "the README's command table is gone"
-    rows = [row.replace("\\|", "|") for row in rows]
-    return {row.split()[1]: row for row in rows}
+    found = {}
+    for row in (row.replace("\\|", "|") for row in rows):
+        words, path, sub = row.split()[1:], (), parser
+        while words and words[0] in subcommands(sub):
+            sub = subcommands(sub)[words[0]]
+            path, words = (*path, words[0]), words[1:]
+        assert path not in found, f"two README rows for racebench {' '.join(path)}"
+        found[path] = row
+    return found
 
 
 def test_readme_command_table_matches_the_parser() -> None:
     parser = cli.build_parser()
-    commands = readme_commands()
-    glob = commands.pop("[-q|-v]")
-    assert {"-q", "-v"} <= {s for a in parser._actions for s in a.option_strings}, glob
-    subs = subcommands(parser)
-    assert set(commands) == set(subs), "commands in the README table and in the parser differ"
-    for name, synopsis in commands.items():
-        known = options(subs[name])
+    written_commands = readme_commands(parser)
+    glob = written_commands.pop(())  # racebench [-q|-v] COMMAND ...
+    assert "[-q|-v]" in glob and {"-q", "-v"} <= {s for a in parser._actions for s in a.option_strings}
+    leaves = commands(parser)
+    assert set(written_commands) == set(leaves), "commands in the README table and in the parser differ"
+    for path, synopsis in written_commands.items():
+        name, known = " ".join(path), options(leaves[path])
         written = set(re.findall(r"--[a-z][a-z0-9-]*", synopsis))
         drift = f"{name}: README only {sorted(written - set(known))}, parser only {sorted(set(known) - written)}"
         assert written == set(known), drift
