@@ -142,13 +142,16 @@ def build_parser() -> argparse.ArgumentParser:
     p_curves.add_argument("--smooth", type=int, default=20, help="rolling mean over this many updates (default 20)")
     p_curves.add_argument("--dpi", type=int, default=300, help="resolution of a PNG in dots per inch (default 300)")
 
-    p_render = sub.add_parser("render", help="write a GIF of one episode: chase view beside the FPV depth image")
+    p_render = sub.add_parser(
+        "render", help="video of one episode (GIF or MP4): chase view, coloured depth with a scale, caption"
+    )
     p_render.add_argument("--agent", default="planner", help=f"{AGENT_HELP} (default: planner)")
     p_render.add_argument("--env", default="RaceObs-S-v0", help="environment id (default: RaceObs-S-v0)")
     p_render.add_argument(
         "--seed", type=int, default=1_000_000, help="episode seed (default 1000000, the first evaluation seed)"
     )
-    p_render.add_argument("--out", default="episode.gif", help="GIF path (default episode.gif)")
+    p_render.add_argument("--out", default="episode.mp4", help="video path, .mp4 or .gif (default episode.mp4)")
+    p_render.add_argument("--fps", type=int, default=25, help="frames per second of the video (default 25)")
     p_render.add_argument("--trust-code", action="store_true", help="allow a .zip or module:Class agent (runs code)")
     p_render.add_argument("--agent-kwargs", default=None, help=AGENT_KWARGS_HELP)
 
@@ -334,17 +337,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise SystemExit(f"racebench curves: {exc}") from exc
     elif args.command == "render":
         from racebench.agents import AgentLoadError, parse_agent_kwargs
-        from racebench.plots import render_episode_gif
+        from racebench.video import outcome_text, render_episode_video
 
         _make(args.env)  # validates the id with a clear message
+        if not 1 <= args.fps <= 50:
+            raise SystemExit(f"racebench render: --fps must be in [1, 50] (the control rate), got {args.fps}")
         try:
             kwargs = parse_agent_kwargs(args.agent_kwargs)
-            gif = render_episode_gif(
-                args.agent, args.env, args.seed, args.out, trust_code=args.trust_code, agent_kwargs=kwargs
+            video, result = render_episode_video(
+                args.agent, args.env, args.seed, args.out, args.fps, trust_code=args.trust_code, agent_kwargs=kwargs
             )
-            log.info(f"wrote {gif}")
-        except AgentLoadError as exc:
+        except (AgentLoadError, ValueError) as exc:
             raise SystemExit(f"racebench render: {exc}") from exc
+        log.info(f"wrote {video} ({outcome_text(result)})")
     elif args.command == "bench":
         from racebench.benchmark import BenchSettings, run_benchmark
 

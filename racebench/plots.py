@@ -1,5 +1,6 @@
 """Figures from result files alone: success rates with confidence intervals, SR vs density and vs gate
-shift, the 3D track plot with flown trajectories (the paper's Fig. 4), and an episode GIF.
+shift, the 3D track plot with flown trajectories (the paper's Fig. 4), training curves; episode videos are
+:mod:`racebench.video`'s.
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 from matplotlib.transforms import Bbox  # noqa: E402
-from PIL import Image  # noqa: E402
 
 from racebench.evaluation import TRACK_ORDER  # noqa: E402
 from racebench.registration import CURRICULUM, DENSITIES, GATE_SHIFTS  # noqa: E402
@@ -243,47 +243,12 @@ def render_episode_gif(
     trust_code: bool = False,
     agent_kwargs: dict[str, Any] | None = None,
 ) -> Path:
-    """Fly one episode and write a GIF: chase-camera view beside the onboard inverse-depth image."""
-    import gymnasium as gym
+    """Fly one episode and write its video (``.gif`` or ``.mp4``): see :func:`racebench.video.render_episode_video`."""
+    from racebench.video import render_episode_video
 
-    from racebench.agents import load_agent
-    from racebench.evaluation import SingleTorchThread, run_episode
-
-    agent = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs)
-    env = gym.make(env_id, render_mode="rgb_array", obs_mode="vision")
-    frames: list[Image.Image] = []
-    every = max(1, round(env.unwrapped.control_freq / fps))
-
-    class Recorder(gym.Wrapper):
-        def step(self, action):
-            out = super().step(action)
-            if self.unwrapped.steps % every == 0 or out[2] or out[3]:
-                frames.append(_compose(self.render(), out[0]["depth"][0]))
-            return out
-
-    wrapped = Recorder(env)
-    if agent.obs_mode == "state":
-        # The recorder, inside, still sees the depth image; the state agent gets the state alone.
-        state_space = env.unwrapped.observation_space["state"]
-        wrapped = gym.wrappers.TransformObservation(wrapped, lambda o: o["state"], state_space)
-    with SingleTorchThread():
-        result = run_episode(agent, wrapped, seed)
-    env.close()
-    if not frames:
-        raise RuntimeError(f"episode produced no frames ({result})")
-    path = Path(path)
-    frames[0].save(path, save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0)
-    return path
-
-
-def _compose(rgb: np.ndarray, depth: np.ndarray) -> Image.Image:
-
-    h = rgb.shape[0]
-    depth_img = Image.fromarray((np.clip(depth, 0, 1) * 255).astype(np.uint8)).resize((h, h), Image.NEAREST)
-    canvas = Image.new("RGB", (rgb.shape[1] + h, h))
-    canvas.paste(Image.fromarray(rgb), (0, 0))
-    canvas.paste(depth_img.convert("RGB"), (rgb.shape[1], 0))
-    return canvas
+    return render_episode_video(
+        agent_spec, env_id, seed, path, fps=fps, trust_code=trust_code, agent_kwargs=agent_kwargs
+    )[0]
 
 
 #: SB3's own CSV logger (``configure(folder, ["csv"])``): its column for each of racebench's progress columns.
