@@ -210,6 +210,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _configure_logging(args.quiet, args.verbose)
+    log.debug(f"racebench {racebench.__version__} from {Path(racebench.__file__).parent}, env version "
+              f"{racebench.ENV_VERSION}, arguments {vars(args)}")  # fmt: skip
     if args.command == "envs":
         try:
             print("\n".join(racebench.ENV_IDS))
@@ -421,6 +423,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     total = len(evaluator.env_ids) * evaluator.episodes
     identity = evaluator.identity
     what = f"{identity.kind}, sha256 {identity.sha256[:12]}, env version {racebench.ENV_VERSION}"
+    log.debug(f"policy {identity.source}: sha256 {identity.sha256}, privileged {identity.privileged}")
     log.info(
         f"{evaluator.agent_name} ({what}): "
         f"{total - todo}/{total} episodes already done in {evaluator.out_dir}, {todo} to run"

@@ -101,6 +101,8 @@ def test_quiet_keeps_results_and_drops_the_chatter(tmp_path: Path, capsys: pytes
     assert (tmp_path / "b.glb").is_file()
     assert cli.main(["-q", "envs"]) == 0  # a command's result is not chatter
     assert "RaceObs-S-v0" in capsys.readouterr().out
+    assert cli.main(["-v", "scene", "--seed", "1", "--out", str(tmp_path / "c.glb")]) == 0
+    assert "racebench 0." in capsys.readouterr().out  # -v: the debug line with version, path and arguments
     with pytest.raises(SystemExit):
         cli.main(["-q", "-v", "envs"])  # one or the other
 
