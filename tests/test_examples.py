@@ -69,3 +69,12 @@ def test_cleanrl_ppo_trains_on_a_level1_id(tmp_path) -> None:
 def test_cleanrl_ppo_rejects_a_budget_below_one_rollout() -> None:
     with pytest.raises(ValueError, match="total_timesteps"):
         load_cleanrl().main(["--total-timesteps", "10", "--num-envs", "2", "--num-steps", "64"])
+
+
+def test_readme_first_python_snippet_runs_as_written(tmp_path, monkeypatch, capsys) -> None:
+    text = (ROOT / "README.md").read_text()
+    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)  # the first one: gym.make, step, export
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, "README.md", "exec"), {"__name__": "__readme__"})
+    assert (tmp_path / "scene.glb").stat().st_size > 1000
+    assert "prog" in capsys.readouterr().out  # the reward terms it prints
