@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import time
 from typing import Any
 
 import gymnasium as gym
@@ -104,7 +105,9 @@ class RaceEnv(gym.Env):
         obstacle_kind: ``"cylinder"``, ``"box"`` or ``"mixed"``.
         start_spread: ± half-sizes (m, per axis) of the random start region, overriding the track's.
         quadrotor: overrides of :class:`~racebench.quadrotor.QuadrotorParams` fields.
-        render_mode: ``None`` or ``"rgb_array"`` (a chase camera).
+        render_mode: ``None``, ``"rgb_array"`` (:meth:`render` returns a chase-camera image) or ``"human"``
+            (PyBullet's GUI window, its camera following the drone, stepped at real time; needs a display, e.g.
+            ``xvfb-run``; one per process). The physics and the observations are the same in every mode.
         renderer: depth renderer, ``"pybullet"`` (``getCameraImage`` with TinyRenderer, the reference) or
             ``"raycast"`` (:class:`~racebench.raycast.BatchDepthRenderer`, the same image within a tested
             tolerance, an order of magnitude faster).
@@ -123,7 +126,7 @@ class RaceEnv(gym.Env):
             ``CnnPolicy`` / ``MultiInputPolicy`` treat as an image and give a NatureCNN.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 50}
 
     def __init__(
         self,
@@ -223,7 +226,8 @@ class RaceEnv(gym.Env):
         self.observation_space = (
             spaces.Dict({"state": state_space(), "depth": depth}) if obs_mode == "vision" else state_space()
         )
-        self.sim = Simulation(self.track, self.params, physics_freq)
+        self.sim = Simulation(self.track, self.params, physics_freq, gui=render_mode == "human")
+        self._frame_due = 0.0  # human mode: wall-clock time (time.monotonic) at which the next frame is due
         self.scene: Scene | None = None  # geometry of the current episode (plain data)
         self.layout: Scene | None = None  # when set, every reset uses its gates and obstacles (set_layout)
         self.drone: DroneState | None = None  # current kinematic state of the drone
@@ -234,7 +238,10 @@ class RaceEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
         """Start an episode on a new scene drawn from ``np_random``, or on ``options["scene"]``."""
         info = self.reset_state(seed=seed, options=options)
-        return self._observation(), info
+        observation = self._observation()
+        if self.render_mode == "human":  # Gymnasium's convention: human mode renders in reset and step
+            self.render()
+        return observation, info
 
     def reset_state(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> dict:
         """:meth:`reset` without the observation: returns the info; follow it with :meth:`observation`.
@@ -308,7 +315,10 @@ class RaceEnv(gym.Env):
     def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict]:
         """Apply one CTBR action for ``physics_freq / control_freq`` physics steps."""
         reward, terminated, truncated, info = self.advance(action)
-        return self._observation(), reward, terminated, truncated, info
+        observation = self._observation()
+        if self.render_mode == "human":
+            self.render()
+        return observation, reward, terminated, truncated, info
 
     def advance(self, action: np.ndarray) -> tuple[float, bool, bool, dict]:
         """:meth:`step` without the observation: ``(reward, terminated, truncated, info)``.
@@ -507,7 +517,11 @@ class RaceEnv(gym.Env):
 
     # ------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:
-        """A 320×240 RGB chase-camera image (``render_mode="rgb_array"``)."""
+        """A 320×240 RGB chase-camera image (``render_mode="rgb_array"``); in ``"human"`` mode the GUI's camera
+        follows the drone and the call waits until the frame is due at real time (``None`` is returned)."""
+        if self.render_mode == "human" and self.scene is not None:
+            self._render_human()
+            return None
         if self.render_mode != "rgb_array" or self.scene is None:
             return None
         pos, _, rot, _, _ = self.drone
@@ -529,6 +543,17 @@ class RaceEnv(gym.Env):
             shadow=0,
         )
         return np.asarray(rgba, dtype=np.uint8).reshape(240, 320, 4)[:, :, :3].copy()
+
+    def _render_human(self) -> None:
+        """Point the GUI's camera at the drone from behind, then wait until this frame is due at real time."""
+        pos, _, rot, _, _ = self.drone
+        yaw = math.degrees(math.atan2(rot[1, 0], rot[0, 0]))
+        # PyBullet's debug camera looks along +y at yaw 0: yaw - 90 puts it behind a drone heading along yaw.
+        self.sim.client.resetDebugVisualizerCamera(2.5, yaw - 90.0, -20.0, pos.tolist())
+        now = time.monotonic()
+        if self._frame_due > now:
+            time.sleep(self._frame_due - now)
+        self._frame_due = max(now, self._frame_due) + 1.0 / self.metadata["render_fps"]
 
     def close(self) -> None:
         """Release the PyBullet client; the env cannot be used afterwards."""
