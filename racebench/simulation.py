@@ -90,7 +90,9 @@ def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
 
 def _gui_client() -> bullet_client.BulletClient:
     """A client with PyBullet's GUI window, or a RuntimeError that says why there is none."""
-    if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+    from racebench.env import display_available
+
+    if not display_available():
         raise RuntimeError(
             "render_mode='human' opens PyBullet's GUI window and needs a display: DISPLAY is not set "
             "(on a headless machine run under xvfb-run, or use render_mode='rgb_array')"

@@ -77,3 +77,11 @@ def test_human_mode_without_a_display_is_a_clear_error(monkeypatch) -> None:
     monkeypatch.delenv("DISPLAY", raising=False)
     with pytest.raises(RuntimeError, match="needs a display.*xvfb-run"):
         gym.make("RaceObs-S-v0", render_mode="human")
+    # Not offered where it cannot open: Gymnasium's check_env makes one env per offered mode.
+    env = gym.make("RaceObs-S-v0", render_mode="rgb_array")
+    assert env.unwrapped.metadata["render_modes"] == ["rgb_array"]
+    env.close()
+    monkeypatch.setenv("DISPLAY", ":99")
+    env = gym.make("RaceObs-S-v0")
+    assert env.unwrapped.metadata["render_modes"] == ["rgb_array", "human"]
+    env.close()
