@@ -13,7 +13,8 @@ Spec strings accepted by :func:`load_agent`:
 * ``path/to/model.zip``: a stable-baselines3 / sb3-contrib checkpoint (recurrent policies included);
 * ``path/to/policy.onnx``: an ONNX policy run with onnxruntime (no code from the file runs), see
   :class:`OnnxAgent` for the expected inputs and outputs and :func:`export_onnx` to make one;
-* ``package.module:ClassName`` or ``path/to/file.py:ClassName``: a Python class built with no arguments.
+* ``package.module:ClassName`` or ``path/to/file.py:ClassName``: a Python class, built with the keyword
+  arguments ``agent_kwargs`` (``--agent-kwargs '{"k": 1}'``; none by default), which must declare ``obs_mode``.
 
 **Untrusted code is refused by default.** Loading an SB3 ``.zip`` unpickles Python objects (which can run
 arbitrary code) and a ``module:Class`` spec imports and runs a module, so both need ``trust_code=True``
@@ -30,6 +31,9 @@ import hashlib
 import importlib
 import importlib.util
 import io
+import json
+import pickle
+import re
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -112,17 +116,78 @@ def _python_source(spec: str) -> Path:
     return path
 
 
-def policy_identity(spec: str) -> PolicyIdentity:
-    """The :class:`PolicyIdentity` of an agent spec, computed from the file's bytes without running any of it."""
+def vecnormalize_path(checkpoint: str | Path) -> Path | None:
+    """The ``VecNormalize`` statistics saved beside an SB3 checkpoint, or ``None``.
+
+    SB3's ``VecNormalize.save`` takes any path; the usual places are the ones looked at here:
+    ``<prefix>_vecnormalize_<n>_steps.pkl`` beside ``<prefix>_<n>_steps.zip`` (``CheckpointCallback`` with
+    ``save_vecnormalize=True``) and, for any other name, ``vecnormalize.pkl`` in the checkpoint's folder
+    (rl-baselines3-zoo's name, and ``racebench train``'s).
+    """
+    path = Path(checkpoint)
+    periodic = re.fullmatch(r"(.*)_(\d+)_steps\.zip", path.name)
+    if periodic:
+        stats = path.with_name(f"{periodic[1]}_vecnormalize_{periodic[2]}_steps.pkl")
+    else:
+        stats = path.parent / "vecnormalize.pkl"
+    return stats if stats.is_file() else None
+
+
+def sb3_policy_sha256(checkpoint_sha256: str, stats_sha256: str | None) -> str:
+    """The policy hash of an SB3 checkpoint: its bytes' sha256, or with ``VecNormalize`` statistics beside it
+    (they change the actions), the sha256 of ``"<checkpoint sha256>+vecnormalize:<statistics sha256>"``."""
+    if stats_sha256 is None:
+        return checkpoint_sha256
+    return hashlib.sha256(f"{checkpoint_sha256}+vecnormalize:{stats_sha256}".encode()).hexdigest()
+
+
+def parse_agent_kwargs(text: str | None) -> dict[str, Any] | None:
+    """The ``--agent-kwargs`` option: a JSON object of constructor keyword arguments (``None`` if not given)."""
+    if text is None:
+        return None
+    try:
+        kwargs = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise AgentLoadError(f"--agent-kwargs {text!r} is not valid JSON: {exc}") from exc
+    if not isinstance(kwargs, dict):
+        raise AgentLoadError(f"--agent-kwargs must be a JSON object such as '{{\"k\": 1}}', got {text!r}")
+    return kwargs
+
+
+def _kwargs_json(agent_kwargs: dict[str, Any]) -> str:
+    """Canonical JSON of constructor arguments (sorted keys, no spaces): the form that is hashed."""
+    try:
+        return json.dumps(agent_kwargs, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise AgentLoadError(f"agent kwargs must be plain JSON values: {exc}") from exc
+
+
+def policy_identity(spec: str, agent_kwargs: dict[str, Any] | None = None) -> PolicyIdentity:
+    """The :class:`PolicyIdentity` of an agent spec, computed from the file's bytes without running any of it.
+
+    A ``module:Class`` built with ``agent_kwargs`` is another policy than the same class without them: its hash
+    is the sha256 of ``"<file sha256>+kwargs:<canonical JSON>"``.
+    """
+    if agent_kwargs and ":" not in spec:
+        raise AgentLoadError(f"agent kwargs apply to module:Class and file.py:Class agents only, not {spec!r}")
     if spec in BUILTIN_AGENTS:
         return builtin_identity(spec)
     if spec.endswith(".zip") or spec.endswith(".onnx"):
         path = Path(spec)
         if not path.is_file():
             raise AgentLoadError(f"policy file {spec!r} does not exist")
-        return PolicyIdentity("sb3" if spec.endswith(".zip") else "onnx", _sha256_bytes(path.read_bytes()), spec, False)
+        digest = _sha256_bytes(path.read_bytes())
+        if spec.endswith(".onnx"):
+            return PolicyIdentity("onnx", digest, spec, False)
+        stats = vecnormalize_path(path)
+        return PolicyIdentity(
+            "sb3", sb3_policy_sha256(digest, _sha256_bytes(stats.read_bytes()) if stats else None), spec, False
+        )
     if ":" in spec:
-        return PolicyIdentity("python", _sha256_bytes(_python_source(spec).read_bytes()), spec, False)
+        digest = _sha256_bytes(_python_source(spec).read_bytes())
+        if agent_kwargs:
+            digest = hashlib.sha256(f"{digest}+kwargs:{_kwargs_json(agent_kwargs)}".encode()).hexdigest()
+        return PolicyIdentity("python", digest, spec, False)
     raise AgentLoadError(
         f"unknown agent spec {spec!r}: expected one of {BUILTIN_AGENTS}, a .zip (SB3) or .onnx file, or module:Class"
     )
@@ -224,6 +289,13 @@ class SB3Agent:
 
     Recurrent policies (sb3-contrib ``RecurrentPPO``, or any policy whose ``predict`` takes a state) have
     their hidden state carried across steps and cleared at each episode start.
+
+    Observations reach the policy as they did in training: a policy trained on ``depth_format="uint8"``
+    gets each float depth image through :func:`racebench.env.depth_to_uint8` (the uint8 envs' own
+    observation), and ``VecNormalize`` statistics saved beside the checkpoint (:func:`vecnormalize_path`)
+    normalise the observations as ``VecNormalize.normalize_obs`` does. The statistics file is a pickle, so it
+    needs ``trust_code`` even beside a shipped checkpoint, and its hash is part of :attr:`sha256`
+    (:func:`sb3_policy_sha256`); :attr:`checkpoint_sha256` is the zip's alone.
     """
 
     privileged = False
@@ -233,17 +305,34 @@ class SB3Agent:
         if not path.is_file():
             raise AgentLoadError(f"SB3 checkpoint {str(path)!r} does not exist")
         data = path.read_bytes()  # hashed and loaded from the same bytes: no swap between check and load
-        self.sha256 = _sha256_bytes(data)
+        self.checkpoint_sha256 = _sha256_bytes(data)
+        stats_path = vecnormalize_path(path)
+        stats = stats_path.read_bytes() if stats_path is not None else None
+        self.sha256 = sb3_policy_sha256(self.checkpoint_sha256, _sha256_bytes(stats) if stats is not None else None)
         if not zipfile.is_zipfile(io.BytesIO(data)):
             raise AgentLoadError(f"SB3 checkpoint {str(path)!r} is not a zip archive (corrupt or not a checkpoint)")
-        if not (trust_code or self.sha256 in TRUSTED_CHECKPOINTS):
+        if not (trust_code or self.checkpoint_sha256 in TRUSTED_CHECKPOINTS):
             raise _refuse_untrusted(str(path), "an SB3 checkpoint is unpickled when loaded")
+        if stats is not None and not trust_code:
+            raise _refuse_untrusted(str(stats_path), "VecNormalize statistics beside the checkpoint are unpickled")
         self.model = self._load(path, device, data)
         self.name = path.stem
         self.obs_mode = _obs_mode_of(self.model.observation_space)
+        self.normalizer = _load_vecnormalize(stats_path, stats) if stats is not None else None
+        self.uint8_depth = self.obs_mode == "vision" and self.model.observation_space["depth"].dtype == np.uint8
         self.recurrent = "Recurrent" in type(self.model.policy).__name__ or hasattr(self.model.policy, "recurrent")
         self.state: Any = None
         self.episode_start = np.ones((1,), dtype=bool)
+
+    def prepare(self, obs: Any) -> Any:
+        """One observation (or a stacked batch) of the standard envs → what the policy was trained on."""
+        if self.uint8_depth:
+            from racebench.env import depth_to_uint8
+
+            obs = {**obs, "depth": depth_to_uint8(obs["depth"])}
+        if self.normalizer is not None:
+            obs = self.normalizer.normalize_obs(obs)
+        return obs
 
     @staticmethod
     def _load(path: Path, device: str, raw: bytes | None = None) -> Any:
@@ -304,7 +393,7 @@ class SB3Agent:
         import torch
 
         policy = self.model.policy
-        obs, _ = policy.obs_to_tensor(_stack(observations, self.obs_mode))
+        obs, _ = policy.obs_to_tensor(self.prepare(_stack(observations, self.obs_mode)))
         with torch.no_grad():  # not inference_mode: RaceFeatures converts its CNN weights on first use
             if self.recurrent:
                 starts = torch.from_numpy(self.batch_starts)
@@ -321,6 +410,7 @@ class SB3Agent:
 
     def act(self, obs: Any) -> np.ndarray:
         """Deterministic action of the policy."""
+        obs = self.prepare(obs)
         if self.recurrent:
             action, self.state = self.model.predict(
                 obs, state=self.state, episode_start=self.episode_start, deterministic=True
@@ -329,6 +419,20 @@ class SB3Agent:
         else:
             action, _ = self.model.predict(obs, deterministic=True)
         return action
+
+
+def _load_vecnormalize(path: Path, data: bytes) -> Any:
+    """The observation normaliser of a trusted ``VecNormalize`` pickle, or ``None`` if it normalises rewards only."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    try:
+        normalizer = pickle.loads(data)  # noqa: S301 - the caller checked trust_code; VecNormalize.load does this
+    except Exception as exc:  # noqa: BLE001 - unpickling raises many kinds on a damaged file
+        raise AgentLoadError(f"VecNormalize statistics {str(path)!r} could not be read: {exc}") from exc
+    if not isinstance(normalizer, VecNormalize):
+        raise AgentLoadError(f"{str(path)!r} holds a {type(normalizer).__name__}, not SB3 VecNormalize statistics")
+    # Reward statistics alone (racebench train's) do not touch what the policy sees.
+    return normalizer if normalizer.norm_obs else None
 
 
 class OnnxAgent:
@@ -471,7 +575,7 @@ def export_onnx(model: Any, path: str | Path) -> Path:
     return path
 
 
-def _python_agent(spec: str, trust_code: bool = False) -> Any:
+def _python_agent(spec: str, trust_code: bool = False, agent_kwargs: dict[str, Any] | None = None) -> Any:
     target, _, cls_name = spec.rpartition(":")
     _python_source(spec)  # a missing file or module is named before the trust question
     if not trust_code:
@@ -493,7 +597,15 @@ def _python_agent(spec: str, trust_code: bool = False) -> Any:
     cls = getattr(module, cls_name, None)
     if cls is None:
         raise AgentLoadError(f"agent spec {spec!r}: {target!r} has no attribute {cls_name!r}")
-    agent = cls()
+    kwargs = agent_kwargs or {}
+    try:
+        agent = cls(**kwargs)
+    except TypeError as exc:  # wrong or missing constructor arguments: say which, and how to pass them
+        raise AgentLoadError(
+            f"agent spec {spec!r}: {cls_name}(**{kwargs}) failed: {exc} (pass its arguments with --agent-kwargs JSON)"
+        ) from exc
+    except Exception as exc:  # noqa: BLE001 - any constructor failure, reported with the spec
+        raise AgentLoadError(f"agent spec {spec!r}: {cls_name}(**{kwargs}) raised {type(exc).__name__}: {exc}") from exc
     for attr in ("reset", "act"):
         if not callable(getattr(agent, attr, None)):
             raise AgentLoadError(f"agent spec {spec!r}: {cls_name} has no method {attr}()")
@@ -511,13 +623,16 @@ def _python_agent(spec: str, trust_code: bool = False) -> Any:
     return agent
 
 
-def load_agent(spec: str, trust_code: bool = False) -> Agent:
+def load_agent(spec: str, trust_code: bool = False, agent_kwargs: dict[str, Any] | None = None) -> Agent:
     """Build an agent from a spec string (see the module docstring).
 
     ``trust_code`` allows specs that run code from a file (SB3 ``.zip`` outside :data:`TRUSTED_CHECKPOINTS`,
     ``module:Class``, ``file.py:Class``); without it they raise :class:`UntrustedCodeError` before any of
-    that code runs.
+    that code runs. ``agent_kwargs`` are the keyword arguments of a ``module:Class`` constructor (an error for
+    any other spec).
     """
+    if agent_kwargs and ":" not in spec:
+        raise AgentLoadError(f"agent kwargs apply to module:Class and file.py:Class agents only, not {spec!r}")
     if spec == "random":
         return RandomAgent()
     if spec == "hover":
@@ -537,7 +652,9 @@ def load_agent(spec: str, trust_code: bool = False) -> Agent:
     if spec.endswith(".onnx"):
         return OnnxAgent(spec)
     if ":" in spec:
-        return _python_agent(spec, trust_code)
+        if agent_kwargs:
+            _kwargs_json(agent_kwargs)  # plain JSON values only: they are hashed into the policy identity
+        return _python_agent(spec, trust_code, agent_kwargs)
     raise AgentLoadError(
         f"unknown agent spec {spec!r}: expected one of {BUILTIN_AGENTS}, a .zip (SB3) or .onnx file, or module:Class"
     )

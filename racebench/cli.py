@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import sys
 from collections.abc import Sequence
@@ -14,8 +15,10 @@ import gymnasium as gym
 import racebench
 from racebench.records import sha256_file
 
-BUILTIN_FLY_AGENTS: tuple[str, ...] = ("follow", "hover", "random")
 SCENE_FORMATS: tuple[str, ...] = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")
+AGENT_HELP = "agent spec: random | hover | planner | follow | model.zip | policy.onnx | module:Class | file.py:Class"
+AGENT_KWARGS_HELP = "JSON object of keyword arguments for a module:Class agent's constructor, e.g. '{\"k\": 1}'"
+log = logging.getLogger("racebench")
 
 
 def _make(env_id: str, **kwargs) -> gym.Env:
@@ -24,49 +27,59 @@ def _make(env_id: str, **kwargs) -> gym.Env:
     return gym.make(env_id, **kwargs)
 
 
-def fly(env_id: str, agent: str, seed: int, obs_mode: str | None = None) -> dict:
-    """Fly one episode of ``env_id`` with a built-in agent; return its outcome as a dict."""
-    from racebench.agents import load_agent
-    from racebench.evaluation import run_episode
+def fly(
+    env_id: str,
+    agent: str,
+    seed: int,
+    obs_mode: str | None = None,
+    trust_code: bool = False,
+    agent_kwargs: dict | None = None,
+) -> dict:
+    """Fly one episode of ``env_id`` with any agent spec ``evaluate`` accepts; return its outcome as a dict.
 
-    if agent not in BUILTIN_FLY_AGENTS:
-        raise SystemExit(f"racebench fly: unknown agent {agent!r}; choose from {BUILTIN_FLY_AGENTS}")
-    pilot = load_agent(agent)
+    Raises :class:`~racebench.agents.AgentLoadError` on a bad spec or an untrusted one without ``trust_code``.
+    """
+    from racebench.agents import load_agent
+    from racebench.evaluation import SingleTorchThread, run_episode
+
+    pilot = load_agent(agent, trust_code=trust_code, agent_kwargs=agent_kwargs)
     env = _make(env_id, obs_mode=obs_mode or pilot.obs_mode)
-    result = run_episode(pilot, env, seed)
+    with SingleTorchThread():
+        result = run_episode(pilot, env, seed)
     env.close()
     truncated = not (result["success"] or result["crashed"] or result["error"])
     return {"env_id": env_id, "agent": agent, "seed": seed, **result, "truncated": truncated}
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``racebench`` console script."""
+def build_parser() -> argparse.ArgumentParser:
+    """The ``racebench`` argument parser (every option has help text; the README's command table is checked
+    against it by a test)."""
     parser = argparse.ArgumentParser(prog="racebench", description=__doc__)
     parser.add_argument("--version", action="version", version=f"racebench {racebench.__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    verbosity = parser.add_mutually_exclusive_group()
+    verbosity.add_argument("-q", "--quiet", action="store_true", help="only warnings, errors and the results")
+    verbosity.add_argument("-v", "--verbose", action="store_true", help="debug messages too")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     sub.add_parser("envs", help="list the registered environment ids")
 
-    p_fly = sub.add_parser("fly", help="fly one episode with a built-in agent and print the outcome")
+    p_fly = sub.add_parser("fly", help="fly one episode with any agent and print the outcome")
     p_fly.add_argument("--env", default="RaceObs-S-v0", help="environment id (default: RaceObs-S-v0)")
+    p_fly.add_argument("--agent", default="follow", help=f"{AGENT_HELP} (default: follow)")
+    p_fly.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
     p_fly.add_argument(
-        "--agent",
-        default="follow",
-        choices=BUILTIN_FLY_AGENTS,
-        help="follow: privileged gate-axis follower that ignores obstacles; hover; random",
+        "--obs-mode", choices=("vision", "state"), default=None, help="observation mode (default: the agent's own)"
     )
-    p_fly.add_argument("--seed", type=int, default=0)
-    p_fly.add_argument("--obs-mode", choices=("vision", "state"), default=None)
+    p_fly.add_argument("--trust-code", action="store_true", help="allow a .zip or module:Class agent (runs code)")
+    p_fly.add_argument("--agent-kwargs", default=None, help=AGENT_KWARGS_HELP)
 
     p_scene = sub.add_parser("scene", help="write the scene of one episode as a mesh (.glb/.obj) and JSON")
-    p_scene.add_argument("--env", default="RaceObs-S-v0")
-    p_scene.add_argument("--seed", type=int, default=0)
-    p_scene.add_argument("--out", default="scene.glb", help="mesh path; the JSON goes beside it")
+    p_scene.add_argument("--env", default="RaceObs-S-v0", help="environment id (default: RaceObs-S-v0)")
+    p_scene.add_argument("--seed", type=int, default=0, help="episode seed: it fixes the scene (default 0)")
+    p_scene.add_argument("--out", default="scene.glb", help="mesh path (.glb .gltf .obj .ply .stl .off), JSON beside")
 
     p_eval = sub.add_parser("evaluate", help="evaluate an agent on env ids or suites; writes episodes/summary CSVs")
-    p_eval.add_argument(
-        "--agent", required=True, help="random | hover | planner | follow | model.zip | policy.onnx | module:Class"
-    )
+    p_eval.add_argument("--agent", required=True, help=AGENT_HELP)
     p_eval.add_argument(
         "--envs", nargs="+", default=["main"], help="env ids and/or suites: main, density, gates, paper (default: main)"
     )
@@ -103,35 +116,54 @@ def main(argv: Sequence[str] | None = None) -> int:
         choices=("public", "private"),
         help="public: seeds 1,000,000 + i (default); private: derived from the secret salt in $RACEBENCH_PRIVATE_SALT",
     )
+    p_eval.add_argument("--agent-kwargs", default=None, help=AGENT_KWARGS_HELP)
 
     p_table = sub.add_parser("table", help="the paper's Table II, III or IV from result directories / summary CSVs")
     p_table.add_argument("results", nargs="+", help="result directories or summary.csv files")
-    p_table.add_argument("--table", default="II", choices=["II", "III", "IV"])
-    p_table.add_argument("--format", default="md", choices=["md", "latex"])
+    p_table.add_argument(
+        "--table", default="II", choices=["II", "III", "IV"],
+        help="II: main results; III: ablations; IV: obstacle density and gate shift (default II)",
+    )  # fmt: skip
+    p_table.add_argument("--format", default="md", choices=["md", "latex"], help="Markdown or LaTeX (default md)")
     p_table.add_argument("--no-ci", action="store_true", help="success rates without Wilson intervals")
     p_table.add_argument("--out", default=None, help="write to this file instead of stdout")
 
     p_plot = sub.add_parser("plot", help="figures from result directories: SR by track, vs density, vs gate shift")
     p_plot.add_argument("results", nargs="+", help="result directories or summary.csv files")
-    p_plot.add_argument("--out", default="results/figures", help="output directory for PNGs")
+    p_plot.add_argument(
+        "--out", default="runs/figures", help="output directory (default runs/figures, outside version control)"
+    )
     p_plot.add_argument("--track-env", default=None, help="also draw the 3D track plot of this env id (Fig. 4)")
+    p_plot.add_argument("--format", default="png", choices=("png", "pdf", "svg"), help="file format (default png)")
+    p_plot.add_argument("--dpi", type=int, default=300, help="resolution of PNGs in dots per inch (default 300)")
     p_curves = sub.add_parser(
         "curves", help="training curves (the paper's Fig. 5) from `racebench train` run directories"
     )
     p_curves.add_argument("runs", nargs="+", help="run directories or their progress.csv files")
-    p_curves.add_argument("--out", default="results/figures/training_curves.png", help="output PNG")
+    p_curves.add_argument(
+        "--out",
+        default="runs/figures/training_curves.png",
+        help="output file, .png, .pdf or .svg (default under runs/)",
+    )
     p_curves.add_argument("--smooth", type=int, default=20, help="rolling mean over this many updates (default 20)")
+    p_curves.add_argument("--dpi", type=int, default=300, help="resolution of a PNG in dots per inch (default 300)")
 
-    p_render = sub.add_parser("render", help="write a GIF of one episode: chase view beside the FPV depth image")
-    p_render.add_argument("--agent", default="planner")
-    p_render.add_argument("--env", default="RaceObs-S-v0")
-    p_render.add_argument("--seed", type=int, default=1_000_000)
-    p_render.add_argument("--out", default="episode.gif")
+    p_render = sub.add_parser(
+        "render", help="video of one episode (GIF or MP4): chase view, coloured depth with a scale, caption"
+    )
+    p_render.add_argument("--agent", default="planner", help=f"{AGENT_HELP} (default: planner)")
+    p_render.add_argument("--env", default="RaceObs-S-v0", help="environment id (default: RaceObs-S-v0)")
+    p_render.add_argument(
+        "--seed", type=int, default=1_000_000, help="episode seed (default 1000000, the first evaluation seed)"
+    )
+    p_render.add_argument("--out", default="episode.mp4", help="video path, .mp4 or .gif (default episode.mp4)")
+    p_render.add_argument("--fps", type=int, default=25, help="frames per second of the video (default 25)")
     p_render.add_argument("--trust-code", action="store_true", help="allow a .zip or module:Class agent (runs code)")
+    p_render.add_argument("--agent-kwargs", default=None, help=AGENT_KWARGS_HELP)
 
     p_train = sub.add_parser("train", help="train a baseline (PPO + GRU, curriculum, multi-scene) from a YAML config")
-    p_train.add_argument("--config", required=True, help="baselines/<name>.yaml")
-    p_train.add_argument("--track", default="S", choices=["S", "J", "Circle"])
+    p_train.add_argument("--config", required=True, help="a shipped config name (e.g. vision-ppo) or a YAML file")
+    p_train.add_argument("--track", default="S", choices=["S", "J", "Circle"], help="track to train on (default S)")
     p_train.add_argument(
         "--steps", type=int, default=200_000, help="environment steps (default 200,000; with --resume: steps to add)"
     )
@@ -156,7 +188,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_distill = sub.add_parser(
         "distill", help="teacher-student baseline: a depth policy imitates the privileged planner (DAgger)"
     )
-    p_distill.add_argument("--track", default="S", choices=["S", "J", "Circle"])
+    p_distill.add_argument("--track", default="S", choices=["S", "J", "Circle"], help="track (default S)")
     p_distill.add_argument("--iterations", type=int, default=8, help="DAgger iterations (default 8)")
     p_distill.add_argument("--steps-per-iteration", type=int, default=20_000, help="env steps collected per iteration")
     p_distill.add_argument("--n-envs", type=int, default=16, help="envs flown side by side (default 16)")
@@ -175,16 +207,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_onnx.add_argument("--trust-code", action="store_true", help="allow a checkpoint outside the shipped ones")
 
     p_bench = sub.add_parser("bench", help="throughput: depth frames/s of both renderers, env steps/s, memory")
-    p_bench.add_argument("--quick", action="store_true", help="tiny sizes, a few seconds (a smoke test)")
+    p_bench.add_argument("--quick", action="store_true", help="smoke test of ~10 s (tiny sizes)")
     p_bench.add_argument("--out", default="bench.csv", help="CSV of every measurement (default bench.csv)")
-    p_bench.add_argument("--track", default="S", choices=["S", "J", "Circle"])
+    p_bench.add_argument("--track", default="S", choices=["S", "J", "Circle"], help="track of every env (default S)")
     p_bench.add_argument("--num-envs", type=int, default=None, help="envs of each vector-env run (default 32)")
 
     from racebench.leaderboard.command import add_parser as add_leaderboard_parser
 
     add_leaderboard_parser(sub)
+    return parser
 
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``racebench`` console script."""
+    parser = build_parser()
     args = parser.parse_args(argv)
+    _configure_logging(args.quiet, args.verbose)
+    log.debug(f"racebench {racebench.__version__} from {Path(racebench.__file__).parent}, env version "
+              f"{racebench.ENV_VERSION}, arguments {vars(args)}")  # fmt: skip
     if args.command == "leaderboard":
         from racebench.leaderboard.command import run as run_leaderboard
 
@@ -196,11 +236,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         except BrokenPipeError:  # `racebench envs | head`: the reader left, which is fine
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     elif args.command == "fly":
-        result = fly(args.env, args.agent, args.seed, args.obs_mode)
+        from racebench.agents import AgentLoadError, parse_agent_kwargs
+
+        try:
+            kwargs = parse_agent_kwargs(args.agent_kwargs)
+            result = fly(args.env, args.agent, args.seed, args.obs_mode, args.trust_code, kwargs)
+        except AgentLoadError as exc:
+            raise SystemExit(f"racebench fly: {exc}") from exc
         outcome = "SUCCESS" if result["success"] else f"FAILED ({result['crash_reason'] or 'time limit'})"
         print(json.dumps(result))
         lap = f", lap time {result['lap_time']:.2f} s" if result["success"] else ""
-        print(f"{args.env} seed {args.seed} agent {args.agent}: {outcome}, gates {result['gates_passed']}{lap}")
+        log.info(f"{args.env} seed {args.seed} agent {args.agent}: {outcome}, gates {result['gates_passed']}{lap}")
+        if result["error"]:
+            last = str(result["error"]).strip().splitlines()[-1]
+            raise SystemExit(f"racebench fly: the agent failed: {last}")
     elif args.command == "scene":
         suffix = Path(args.out).suffix.lower()
         if suffix not in SCENE_FORMATS:
@@ -213,7 +262,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         json_path = path.with_suffix(".json")
         json_path.write_text(json.dumps(scene.to_dict(), indent=2))
         env.close()
-        print(f"wrote {path} and {json_path}")
+        log.info(f"wrote {path} and {json_path}")
     elif args.command == "train":
         from racebench.training.train import TrainConfig, resolve_device, train
 
@@ -241,7 +290,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             out = export_onnx(agent.model, args.out or Path(args.checkpoint).with_suffix(".onnx"))
         except (AgentLoadError, ValueError) as exc:
             raise SystemExit(f"racebench export-onnx: {exc}") from exc
-        print(f"wrote {out} (sha256 {sha256_file(out)})")
+        log.info(f"wrote {out} (sha256 {sha256_file(out)})")
     elif args.command == "distill":
         from racebench.training.dagger import DaggerConfig, distill
 
@@ -264,49 +313,63 @@ def main(argv: Sequence[str] | None = None) -> int:
         text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci)
         if args.out:
             Path(args.out).write_text(text)
-            print(f"wrote {args.out}")
+            log.info(f"wrote {args.out}")
         else:
             print(text)
     elif args.command == "plot":
         from racebench import plots
 
+        if not 20 <= args.dpi <= 2400:
+            raise SystemExit(f"racebench plot: --dpi must be in [20, 2400], got {args.dpi}")
         summary = _summaries(args.results, "plot")
-        out = Path(args.out)
+        out, fmt, dpi = Path(args.out), args.format, args.dpi
         written = []
         for name, make in (
-            ("success_by_track.png", lambda p: plots.plot_success_by_track(summary, p)),
-            ("success_vs_density.png", lambda p: plots.plot_success_vs(summary, "density", p)),
-            ("success_vs_gate_shift.png", lambda p: plots.plot_success_vs(summary, "gates", p)),
+            ("success_by_track", lambda p: plots.plot_success_by_track(summary, p, dpi)),
+            ("success_vs_density", lambda p: plots.plot_success_vs(summary, "density", p, dpi)),
+            ("success_vs_gate_shift", lambda p: plots.plot_success_vs(summary, "gates", p, dpi)),
+            ("success_by_level", lambda p: plots.plot_success_vs(summary, "levels", p, dpi)),
         ):
             try:
-                written.append(make(out / name))
+                written.append(make(out / f"{name}.{fmt}"))
             except ValueError as exc:  # a figure whose results are absent is skipped, with the reason
-                print(f"skipped {name}: {exc}")
+                log.warning(f"skipped {name}: {exc}")
         if args.track_env:
             source = next((Path(r) for r in args.results if (Path(r) / "trajectories").is_dir()), None)
             if source is None:
                 raise SystemExit("racebench plot: --track-env needs a result directory made with --save-trajectories")
-            written.append(plots.plot_track_3d(source, args.track_env, out / f"track_{args.track_env}.png"))
+            try:
+                written.append(
+                    plots.plot_track_3d(source, args.track_env, out / f"track_{args.track_env}.{fmt}", dpi=dpi)
+                )
+            except ValueError as exc:
+                raise SystemExit(f"racebench plot: {exc}") from exc
         for path in written:
-            print(f"wrote {path}")
+            log.info(f"wrote {path}")
         if not written:
             raise SystemExit("racebench plot: no figure could be drawn from these results (see the reasons above)")
     elif args.command == "curves":
         from racebench.plots import plot_training_curves
 
         try:
-            print(f"wrote {plot_training_curves(args.runs, args.out, args.smooth)}")
+            log.info(f"wrote {plot_training_curves(args.runs, args.out, args.smooth, args.dpi)}")
         except ValueError as exc:
             raise SystemExit(f"racebench curves: {exc}") from exc
     elif args.command == "render":
-        from racebench.agents import AgentLoadError
-        from racebench.plots import render_episode_gif
+        from racebench.agents import AgentLoadError, parse_agent_kwargs
+        from racebench.video import outcome_text, render_episode_video
 
         _make(args.env)  # validates the id with a clear message
+        if not 1 <= args.fps <= 50:
+            raise SystemExit(f"racebench render: --fps must be in [1, 50] (the control rate), got {args.fps}")
         try:
-            print(f"wrote {render_episode_gif(args.agent, args.env, args.seed, args.out, trust_code=args.trust_code)}")
-        except AgentLoadError as exc:
+            kwargs = parse_agent_kwargs(args.agent_kwargs)
+            video, result = render_episode_video(
+                args.agent, args.env, args.seed, args.out, args.fps, trust_code=args.trust_code, agent_kwargs=kwargs
+            )
+        except (AgentLoadError, ValueError) as exc:
             raise SystemExit(f"racebench render: {exc}") from exc
+        log.info(f"wrote {video} ({outcome_text(result)})")
     elif args.command == "bench":
         from racebench.benchmark import BenchSettings, run_benchmark
 
@@ -320,6 +383,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+class _BelowWarning(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.levelno < logging.WARNING
+
+
+def _configure_logging(quiet: bool, verbose: bool) -> None:
+    """racebench's messages: info (``wrote ...``, progress) to stdout, warnings and errors to stderr.
+
+    ``-q`` keeps warnings, errors and each command's results (tables, JSON); ``-v`` adds debug messages.
+    """
+    level = logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO
+    out = logging.StreamHandler(sys.stdout)
+    out.addFilter(_BelowWarning())
+    err = logging.StreamHandler(sys.stderr)
+    err.setLevel(logging.WARNING)
+    for handler in (out, err):
+        handler.setFormatter(logging.Formatter("%(message)s"))
+    log.handlers[:] = [out, err]
+    log.setLevel(level)
+    log.propagate = False  # our own handlers; the root logger (and library loggers) stay as they are
+
+
 def _summaries(results: Sequence[str], command: str):
     """Summaries recomputed from the records of result directories; a bad path is a one-line error."""
     from racebench.evaluation import read_summaries
@@ -331,10 +416,11 @@ def _summaries(results: Sequence[str], command: str):
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from racebench.agents import AgentLoadError
+    from racebench.agents import AgentLoadError, parse_agent_kwargs
     from racebench.evaluation import Evaluator
 
     try:
+        agent_kwargs = parse_agent_kwargs(args.agent_kwargs)
         evaluator = Evaluator(
             args.agent,
             envs=args.envs,
@@ -348,6 +434,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             renderer=args.renderer,
             batch=args.batch,
             seed_set=args.seed_set,
+            agent_kwargs=agent_kwargs,
         )
     except (AgentLoadError, ValueError) as exc:
         raise SystemExit(f"racebench evaluate: {exc}") from exc
@@ -357,16 +444,17 @@ def _evaluate(args: argparse.Namespace) -> int:
     what = f"{identity.kind}, sha256 {identity.sha256[:12]}, env version {racebench.ENV_VERSION}"
     if evaluator.seed_set != "public":
         what += f", {evaluator.seed_set} seeds of salt sha256 {evaluator.salt_sha256[:12]}"
-    print(
+    log.debug(f"policy {identity.source}: sha256 {identity.sha256}, privileged {identity.privileged}")
+    log.info(
         f"{evaluator.agent_name} ({what}): "
         f"{total - todo}/{total} episodes already done in {evaluator.out_dir}, {todo} to run"
     )
-    summary = evaluator.run()
+    summary = evaluator.run(progress=not args.quiet)
     columns = ["env_id", "n", "successes", "success_rate", "sr_ci_low", "sr_ci_high", "lap_time_median"]
     order = {env_id: i for i, env_id in enumerate(evaluator.env_ids)}
     shown = summary.sort_values("env_id", key=lambda ids: ids.map(order))
     print(shown[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
-    print(f"wrote {evaluator.out_dir / 'episodes.csv'} and {evaluator.out_dir / 'summary.csv'}")
+    log.info(f"wrote {evaluator.out_dir / 'episodes.csv'} and {evaluator.out_dir / 'summary.csv'}")
     asked = evaluator.selected  # the asked episodes, as just summarised
     failed = asked["crash_reason"].isin(["agent_error", "env_error"])
     if len(asked) and failed.all():

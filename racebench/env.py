@@ -10,6 +10,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import sys
+import time
 from typing import Any
 
 import gymnasium as gym
@@ -30,10 +32,31 @@ from racebench.track import Track, load_track
 OBS_MODES: tuple[str, ...] = ("vision", "state")
 RENDERERS: tuple[str, ...] = ("pybullet", "raycast")
 START_MODES: tuple[str, ...] = ("track", "gates")
+#: ``"float32"``: depth (1, 64, 64) in [0, 1], the paper's and the default; ``"uint8"``: the same image as
+#: (64, 64, 1) uint8 in [0, 255], the layout and dtype stable-baselines3 recognises as an image (NatureCNN).
+DEPTH_FORMATS: tuple[str, ...] = ("float32", "uint8")
 STATE_DIM = 17
 POSITION_SCALE = 10.0  # m per unit
 VELOCITY_SCALE = 10.0  # m/s per unit
 STATE_LIMIT = 5.0  # |state| is clipped here: 50 m, 50 m/s, 5x the max body rate
+
+
+def depth_to_uint8(depth: np.ndarray) -> np.ndarray:
+    """Float depth ``(..., 1, H, W)`` in [0, 1] → ``(..., H, W, 1)`` uint8 in [0, 255], rounded to nearest.
+
+    The ``depth_format="uint8"`` observation is exactly this function of the float one (same noise draws), so
+    a policy trained on uint8 depth can be flown on the float envs by converting (:class:`racebench.agents.SB3Agent`
+    does), with identical inputs.
+    """
+    scaled = np.asarray(depth, dtype=np.float32) * np.float32(255.0) + np.float32(0.5)
+    return np.ascontiguousarray(np.moveaxis(scaled.astype(np.uint8), -3, -1))
+
+
+def depth_space(size: int, depth_format: str = "float32") -> spaces.Box:
+    """The ``depth`` observation space of a ``size``×``size`` camera in ``depth_format`` (see DEPTH_FORMATS)."""
+    if depth_format == "uint8":
+        return spaces.Box(0, 255, shape=(size, size, 1), dtype=np.uint8)
+    return spaces.Box(0.0, 1.0, shape=(1, size, size), dtype=np.float32)
 
 
 def state_space() -> spaces.Box:
@@ -52,7 +75,8 @@ class RaceEnv(gym.Env):
         (x, y, z, w with w ≥ 0), body rates (/max body rate per axis); clipped to ±5 (quaternion ±1).
       * ``depth`` (1×64×64 float32 in [0, 1]): normalised inverse depth ``0.2 m / depth`` from a camera
         0.1 m ahead of the body centre along body x, 90° FOV, range 0.2–10 m, Gaussian noise
-        ``depth_noise_std``; see :class:`~racebench.camera.DepthCamera`.
+        ``depth_noise_std``; see :class:`~racebench.camera.DepthCamera`. With ``depth_format="uint8"`` the
+        same image as 64×64×1 uint8 (:func:`depth_to_uint8`).
 
     Action: CTBR in ``[-1, 1]^4`` (collective thrust, roll/pitch/yaw rate), see
     :mod:`racebench.quadrotor`. The rate controller, motors and drag run at ``physics_freq``.
@@ -64,7 +88,7 @@ class RaceEnv(gym.Env):
     sphere swept along each physics substep comes within 1 mm of it, by exact geometry: see
     :mod:`racebench.collision`) or on leaving the arena; ``truncated`` at ``max_episode_time``. A gate is
     passed by crossing its plane inside the opening on a substep that touched nothing. ``info``:
-    ``is_success``, ``lap_time`` (s, successful episodes only, else ``None``), ``gates_passed``, ``crashed``,
+    ``is_success``, ``lap_time`` (s; present only once the lap is done), ``gates_passed``, ``crashed``,
     ``crash_reason`` (``"gate:<i>"``, ``"obstacle:<j>"``, ``"ground"``, ``"out_of_bounds"``), ``reward_terms``,
     ``time``, ``start_gate`` (the first gate to pass: 0 unless ``start_mode="gates"``).
 
@@ -82,7 +106,9 @@ class RaceEnv(gym.Env):
         obstacle_kind: ``"cylinder"``, ``"box"`` or ``"mixed"``.
         start_spread: ± half-sizes (m, per axis) of the random start region, overriding the track's.
         quadrotor: overrides of :class:`~racebench.quadrotor.QuadrotorParams` fields.
-        render_mode: ``None`` or ``"rgb_array"`` (a chase camera).
+        render_mode: ``None``, ``"rgb_array"`` (:meth:`render` returns a chase-camera image) or ``"human"``
+            (PyBullet's GUI window, its camera following the drone, stepped at real time; needs a display, e.g.
+            ``xvfb-run``; one per process). The physics and the observations are the same in every mode.
         renderer: depth renderer, ``"pybullet"`` (``getCameraImage`` with TinyRenderer, the reference) or
             ``"raycast"`` (:class:`~racebench.raycast.BatchDepthRenderer`, the same image within a tested
             tolerance, an order of magnitude faster).
@@ -96,9 +122,12 @@ class RaceEnv(gym.Env):
             ``info["start_gate"]`` is ``k``, so only ``k = 0`` episodes are laps).
         gate_shift_z: ± half-range of the gates' vertical shift in m (default ``gate_shift``; the paper trains
             with ±1 m on x/y and ±0.3 m on z).
+        depth_format: ``"float32"`` (the default and the paper's: ``(1, 64, 64)`` in [0, 1]) or ``"uint8"``
+            (``(64, 64, 1)`` in [0, 255], :func:`depth_to_uint8` of the float image), which stable-baselines3's
+            ``CnnPolicy`` / ``MultiInputPolicy`` treat as an image and give a NatureCNN.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 50}
 
     def __init__(
         self,
@@ -119,12 +148,15 @@ class RaceEnv(gym.Env):
         renderer: str = "pybullet",
         start_mode: str = "track",
         gate_shift_z: float | None = None,
+        depth_format: str = "float32",
     ) -> None:
         super().__init__()
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
         if start_mode not in START_MODES:
             raise ValueError(f"start_mode must be one of {START_MODES}, got {start_mode!r}")
+        if depth_format not in DEPTH_FORMATS:
+            raise ValueError(f"depth_format must be one of {DEPTH_FORMATS}, got {depth_format!r}")
         if renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -180,6 +212,7 @@ class RaceEnv(gym.Env):
         self.quad = Quadrotor(self.params)
         self.start_mode = start_mode
         self.obs_mode = obs_mode
+        self.depth_format = depth_format
         self.render_mode = render_mode
         self.desired_speed = float(desired_speed)
         self.control_freq = control_freq
@@ -187,14 +220,18 @@ class RaceEnv(gym.Env):
         self.substeps = physics_freq // control_freq
         self.dt = 1.0 / physics_freq
         self.max_steps = int(round(max_episode_time * control_freq))
-        self.metadata = {**self.metadata, "render_fps": control_freq}
+        # "human" is offered only where a display is: checkers that try every render mode (Gymnasium's
+        # check_env makes one env per mode) would otherwise fail on every headless machine.
+        modes = [m for m in self.metadata["render_modes"] if m != "human" or display_available()]
+        self.metadata = {**self.metadata, "render_fps": control_freq, "render_modes": modes}
 
         self.action_space = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
-        depth_space = spaces.Box(0.0, 1.0, shape=(1, self.camera.size, self.camera.size), dtype=np.float32)
+        depth = depth_space(self.camera.size, depth_format)
         self.observation_space = (
-            spaces.Dict({"state": state_space(), "depth": depth_space}) if obs_mode == "vision" else state_space()
+            spaces.Dict({"state": state_space(), "depth": depth}) if obs_mode == "vision" else state_space()
         )
-        self.sim = Simulation(self.track, self.params, physics_freq)
+        self.sim = Simulation(self.track, self.params, physics_freq, gui=render_mode == "human")
+        self._frame_due = 0.0  # human mode: wall-clock time (time.monotonic) at which the next frame is due
         self.scene: Scene | None = None  # geometry of the current episode (plain data)
         self.layout: Scene | None = None  # when set, every reset uses its gates and obstacles (set_layout)
         self.drone: DroneState | None = None  # current kinematic state of the drone
@@ -205,7 +242,10 @@ class RaceEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
         """Start an episode on a new scene drawn from ``np_random``, or on ``options["scene"]``."""
         info = self.reset_state(seed=seed, options=options)
-        return self._observation(), info
+        observation = self._observation()
+        if self.render_mode == "human":  # Gymnasium's convention: human mode renders in reset and step
+            self.render()
+        return observation, info
 
     def reset_state(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> dict:
         """:meth:`reset` without the observation: returns the info; follow it with :meth:`observation`.
@@ -279,7 +319,10 @@ class RaceEnv(gym.Env):
     def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict]:
         """Apply one CTBR action for ``physics_freq / control_freq`` physics steps."""
         reward, terminated, truncated, info = self.advance(action)
-        return self._observation(), reward, terminated, truncated, info
+        observation = self._observation()
+        if self.render_mode == "human":
+            self.render()
+        return observation, reward, terminated, truncated, info
 
     def advance(self, action: np.ndarray) -> tuple[float, bool, bool, dict]:
         """:meth:`step` without the observation: ``(reward, terminated, truncated, info)``.
@@ -450,15 +493,17 @@ class RaceEnv(gym.Env):
             return state
         if depth is None:
             depth = self.depth_image()
-        return {"state": state, "depth": self.camera.normalise(depth, self.np_random)}
+        image = self.camera.normalise(depth, self.np_random)
+        if self.depth_format == "uint8":
+            image = depth_to_uint8(image)
+        return {"state": state, "depth": image}
 
     def _observation(self) -> Any:
         return self.observation()
 
     def _info(self, terms: dict[str, float]) -> dict[str, Any]:
-        return {
+        info = {
             "is_success": self.lap_time is not None,
-            "lap_time": self.lap_time,
             "gates_passed": self.next_gate - self.start_gate,
             "crashed": self.crash_reason is not None,
             "crash_reason": self.crash_reason,
@@ -466,10 +511,21 @@ class RaceEnv(gym.Env):
             "time": self.time,
             "start_gate": self.start_gate,
         }
+        # lap_time only once there is one (Gymnasium's idiom for occasional infos): a float or nothing, so its
+        # vector form is float64 with a "_lap_time" mask in every vectorization mode. A None here would make
+        # SyncVectorEnv's array an object array or a float one depending on which env comes first, and a NaN
+        # fails Gymnasium's own determinism check (NaN != NaN).
+        if self.lap_time is not None:
+            info["lap_time"] = self.lap_time
+        return info
 
     # ------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:
-        """A 320×240 RGB chase-camera image (``render_mode="rgb_array"``)."""
+        """A 320×240 RGB chase-camera image (``render_mode="rgb_array"``); in ``"human"`` mode the GUI's camera
+        follows the drone and the call waits until the frame is due at real time (``None`` is returned)."""
+        if self.render_mode == "human" and self.scene is not None:
+            self._render_human()
+            return None
         if self.render_mode != "rgb_array" or self.scene is None:
             return None
         pos, _, rot, _, _ = self.drone
@@ -491,6 +547,17 @@ class RaceEnv(gym.Env):
             shadow=0,
         )
         return np.asarray(rgba, dtype=np.uint8).reshape(240, 320, 4)[:, :, :3].copy()
+
+    def _render_human(self) -> None:
+        """Point the GUI's camera at the drone from behind, then wait until this frame is due at real time."""
+        pos, _, rot, _, _ = self.drone
+        yaw = math.degrees(math.atan2(rot[1, 0], rot[0, 0]))
+        # PyBullet's debug camera looks along +y at yaw 0: yaw - 90 puts it behind a drone heading along yaw.
+        self.sim.client.resetDebugVisualizerCamera(2.5, yaw - 90.0, -20.0, pos.tolist())
+        now = time.monotonic()
+        if self._frame_due > now:
+            time.sleep(self._frame_due - now)
+        self._frame_due = max(now, self._frame_due) + 1.0 / self.metadata["render_fps"]
 
     def close(self) -> None:
         """Release the PyBullet client; the env cannot be used afterwards."""
@@ -522,6 +589,11 @@ class RaceEnv(gym.Env):
     def __copy__(self) -> Any:
         """Refuse shallow copies (see :attr:`_NO_COPY`)."""
         raise TypeError(self._NO_COPY)
+
+
+def display_available() -> bool:
+    """Whether a GUI window can open here: always on macOS and Windows, with ``DISPLAY`` set elsewhere."""
+    return not sys.platform.startswith("linux") or bool(os.environ.get("DISPLAY"))
 
 
 def _check_number(name: str, value: Any, unit: str, positive: bool) -> None:

@@ -162,12 +162,15 @@ class RecordWriter:
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(agent_spec: str, renderer: str, trust_code: bool, threads: int) -> None:
+def _worker_init(
+    agent_spec: str, renderer: str, trust_code: bool, threads: int, agent_kwargs: dict[str, Any] | None = None
+) -> None:
     _close_pool()
     if not _WORKER.get("atexit"):
         atexit.register(_close_pool)  # a worker process's envs, at its exit
         _WORKER["atexit"] = True
-    _WORKER.update(agent=load_agent(agent_spec, trust_code=trust_code), renderer=renderer, pool={})
+    agent = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs)
+    _WORKER.update(agent=agent, renderer=renderer, pool={})
     torch = sys.modules.get("torch")  # imported by learned agents only; built-ins need not pay for it
     if torch is not None:
         torch.set_num_threads(threads)
@@ -282,6 +285,7 @@ class Evaluator:
         seed_set: ``"public"`` (``EVAL_SEED_BASE + i``) or ``"private"``: seeds derived from the secret salt
             ``salt`` or, when not given, the environment variable ``RACEBENCH_PRIVATE_SALT``
             (:mod:`racebench.leaderboard.seeds`); the records store the salt's hash, never the salt.
+        agent_kwargs: constructor keyword arguments of a ``module:Class`` agent (part of its policy identity).
     """
 
     def __init__(
@@ -299,6 +303,7 @@ class Evaluator:
         batch: int = DEFAULT_BATCH,
         seed_set: str = SEED_SET,
         salt: str | None = None,
+        agent_kwargs: dict[str, Any] | None = None,
     ) -> None:
         from racebench.env import RENDERERS
         from racebench.leaderboard.seeds import salt_from_env, salt_sha256, seeds_for
@@ -324,8 +329,9 @@ class Evaluator:
             salt = salt_from_env()  # before loading anything: a missing secret is a one-line error
         self.seeds = seeds_for(seed_set, episodes, salt, SEED_PROTOCOL)
         self.salt_sha256 = salt_sha256(salt) if seed_set == "private" else None
-        probe = load_agent(agent_spec, trust_code=trust_code)  # fail fast, in this process, on a bad spec
-        self.identity = policy_identity(agent_spec)
+        self.agent_kwargs = agent_kwargs
+        probe = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs)  # fail fast, here
+        self.identity = policy_identity(agent_spec, agent_kwargs)
         if getattr(probe, "sha256", self.identity.sha256) != self.identity.sha256:
             raise ValueError(f"{agent_spec!r} changed while it was being loaded")
         self.agent_name = agent_name or probe.name
@@ -405,7 +411,7 @@ class Evaluator:
         tasks = [todo[i : i + size] for i in range(0, len(todo), size)]
         if self.workers == 1 or len(tasks) <= 1:
             with SingleTorchThread():
-                _worker_init(self.agent_spec, self.renderer, self.trust_code, torch_threads())
+                _worker_init(self.agent_spec, self.renderer, self.trust_code, torch_threads(), self.agent_kwargs)
                 try:
                     for task in tasks:
                         self.done.update(_fly(task, self.writer, self.batch, self.save_trajectories))
@@ -419,7 +425,7 @@ class Evaluator:
                 self.workers,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=_worker_init,
-                initargs=(self.agent_spec, self.renderer, self.trust_code, 1),
+                initargs=(self.agent_spec, self.renderer, self.trust_code, 1, self.agent_kwargs),
             ) as pool:
                 futures = {
                     pool.submit(_fly, task, self.writer, self.batch, self.save_trajectories): len(task)

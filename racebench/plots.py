@@ -1,11 +1,13 @@
 """Figures from result files alone: success rates with confidence intervals, SR vs density and vs gate
-shift, the 3D track plot with flown trajectories (the paper's Fig. 4), and an episode GIF.
+shift, the 3D track plot with flown trajectories (the paper's Fig. 4), training curves; episode videos are
+:mod:`racebench.video`'s.
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -13,11 +15,20 @@ matplotlib.use("Agg")  # files only; never needs a display
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
-from PIL import Image  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
+from matplotlib.transforms import Bbox  # noqa: E402
 
 from racebench.evaluation import TRACK_ORDER  # noqa: E402
-from racebench.registration import DENSITIES, GATE_SHIFTS  # noqa: E402
+from racebench.registration import CURRICULUM, DENSITIES, GATE_SHIFTS  # noqa: E402
 from racebench.tables import TRACK_NAMES  # noqa: E402
+
+#: File formats of the figures (matplotlib picks the writer from the suffix) and the default resolution of PNGs.
+FIGURE_FORMATS: tuple[str, ...] = ("png", "pdf", "svg")
+DEFAULT_DPI = 300
+NOT_EVALUATED = "n/e"  # the label of a bar slot whose cell has no results
+_LABEL_BOX = {"facecolor": "white", "edgecolor": "none", "pad": 0.6}  # a label stays legible over an error bar
 
 
 def _label(agent: str, privileged: bool) -> str:
@@ -29,8 +40,14 @@ def _agents(summary: pd.DataFrame) -> list[tuple[str, bool]]:
     return sorted(((str(a), bool(p)) for a, p in pairs), key=lambda x: (x[1], x[0]))
 
 
-def plot_success_by_track(summary: pd.DataFrame, path: str | Path) -> Path:
-    """Grouped bars: SR per track and agent with 95 % Wilson intervals (privileged agents hatched)."""
+def plot_success_by_track(summary: pd.DataFrame, path: str | Path, dpi: int = DEFAULT_DPI) -> Path:
+    """Grouped bars: SR per track and agent with 95 % Wilson intervals (privileged agents hatched), written to
+    ``path`` (PNG, PDF or SVG by its suffix). A 0 % cell is labelled "0 %", a cell without results "n/e"."""
+    return _save(success_by_track_figure(summary), path, dpi)
+
+
+def success_by_track_figure(summary: pd.DataFrame) -> Any:
+    """The figure of :func:`plot_success_by_track` (legend outside the axes, so it never hides a bar)."""
     main = summary[summary["variant"] == "default"]
     if main.empty:
         raise ValueError("no results on the main ids (RaceObs-{S,J,Circle}-v0) to plot")
@@ -38,13 +55,15 @@ def plot_success_by_track(summary: pd.DataFrame, path: str | Path) -> Path:
     width = 0.8 / len(agents)
     fig, ax = plt.subplots(figsize=(1.8 + 1.6 * len(TRACK_ORDER), 3.4))
     x = np.arange(len(TRACK_ORDER))
+    missing = False
     for i, (agent, privileged) in enumerate(agents):
         rows = [main[(main["agent"] == agent) & (main["track"] == t)] for t in TRACK_ORDER]
         sr = np.array([100 * r["success_rate"].iloc[0] if len(r) else np.nan for r in rows])
         low = np.array([100 * r["sr_ci_low"].iloc[0] if len(r) else np.nan for r in rows])
         high = np.array([100 * r["sr_ci_high"].iloc[0] if len(r) else np.nan for r in rows])
-        ax.bar(
-            x + (i - (len(agents) - 1) / 2) * width,
+        centres = x + (i - (len(agents) - 1) / 2) * width
+        bars = ax.bar(
+            centres,
             sr,
             width,
             yerr=[sr - low, high - sr],
@@ -54,26 +73,41 @@ def plot_success_by_track(summary: pd.DataFrame, path: str | Path) -> Path:
             edgecolor="black",
             linewidth=0.5,
         )
+        # A 0 % bar has no height and an absent cell draws nothing: without a label the two look the same.
+        for centre, value, bar in zip(centres, sr, bars, strict=True):
+            if np.isnan(value):
+                missing = True
+                ax.text(centre, 1.5, NOT_EVALUATED, ha="center", va="bottom", fontsize=7, color="0.4", style="italic")
+            elif value == 0:
+                ax.plot([centre - width / 2, centre + width / 2], [0, 0], color=bar.get_facecolor(), linewidth=3)
+                ax.text(centre, 1.5, "0 %", ha="center", va="bottom", fontsize=7, bbox=_LABEL_BOX)
     ax.set_xticks(x, [TRACK_NAMES[t] for t in TRACK_ORDER])
     ax.set_ylabel("success rate [%]")
     ax.set_ylim(0, 105)
+    ax.set_xlim(-0.5, len(TRACK_ORDER) - 0.5)
     n = int(main["n"].min())
     ax.set_title(f"Success rate, 95% Wilson CI (n ≥ {n} per cell)", fontsize=10)
-    ax.legend(fontsize=8, loc="lower right")
+    legend = ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    if missing:
+        legend.set_title(f"{NOT_EVALUATED}: not evaluated", prop={"size": 7, "style": "italic"})
     ax.grid(axis="y", alpha=0.3)
-    return _save(fig, path)
+    return fig
 
 
-def plot_success_vs(summary: pd.DataFrame, factor: str, path: str | Path) -> Path:
-    """SR vs obstacle density (``factor="density"``) or gate shift (``"gates"``), one panel per track."""
+def plot_success_vs(summary: pd.DataFrame, factor: str, path: str | Path, dpi: int = DEFAULT_DPI) -> Path:
+    """SR vs obstacle density (``factor="density"``), gate shift (``"gates"``) or curriculum level (``"levels"``,
+    the ``-Level{1,2,3}`` ids), one panel per track; a level, density or shift without results is left out."""
     if factor == "density":
         xs, xlabel = list(DENSITIES), "obstacles per 2 gates"
         variants = [f"Density{d}" for d in DENSITIES]
     elif factor == "gates":
         xs, xlabel = [float(s) for s in GATE_SHIFTS], "gate shift ±[m]"
         variants = [f"GateShift{s}" for s in GATE_SHIFTS]
+    elif factor == "levels":
+        xs, xlabel = sorted(CURRICULUM), "curriculum level"
+        variants = [f"Level{level}" for level in xs]
     else:
-        raise ValueError(f"factor must be 'density' or 'gates', got {factor!r}")
+        raise ValueError(f"factor must be 'density', 'gates' or 'levels', got {factor!r}")
     data = summary[summary["variant"].isin(variants)]
     if data.empty:
         raise ValueError(f"no results on the {factor} variants to plot")
@@ -88,14 +122,16 @@ def plot_success_vs(summary: pd.DataFrame, factor: str, path: str | Path) -> Pat
             style = "--" if privileged else "-"
             (line,) = ax.plot(xs, sr, style, marker="o", label=_label(agent, privileged))
             ax.fill_between(xs, low, high, color=line.get_color(), alpha=0.15)
+        if data[data["track"] == track].empty:  # say so, rather than leave a panel that looks like a failure
+            ax.text(0.5, 0.5, "not evaluated", transform=ax.transAxes, ha="center", color="0.4", style="italic")
         ax.set_title(TRACK_NAMES[track], fontsize=10)
         ax.set_xlabel(xlabel)
         ax.set_xticks(xs)
-        ax.set_ylim(0, 105)
+        ax.set_ylim(-4, 105)  # a 0 % point shows whole, not cut in half by the axis
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("success rate [%] (95% CI)")
-    axes[-1].legend(fontsize=8, loc="lower left")
-    return _save(fig, path)
+    axes[-1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)  # off the curves
+    return _save(fig, path, dpi)
 
 
 def _draw_scene(ax, scene: dict) -> None:
@@ -128,7 +164,12 @@ def _draw_scene(ax, scene: dict) -> None:
 
 
 def plot_track_3d(
-    out_dir: str | Path, env_id: str, path: str | Path, agent: str | None = None, seed: int | None = None
+    out_dir: str | Path,
+    env_id: str,
+    path: str | Path,
+    agent: str | None = None,
+    seed: int | None = None,
+    dpi: int = DEFAULT_DPI,
 ) -> Path:
     """The paper's Fig. 4: gates, obstacles and flown trajectories of one env id (needs saved trajectories).
 
@@ -148,7 +189,7 @@ def plot_track_3d(
     runs = [run for run in runs if run[0]["seed"] == seed]  # one scene: trajectories of other seeds flew others
     if not runs:
         raise ValueError(f"no trajectory of {env_id!r} with seed {seed} in {str(out_dir)!r}")
-    fig = plt.figure(figsize=(7, 5.5))
+    fig = plt.figure(figsize=(7.5, 4.6))
     ax = fig.add_subplot(projection="3d")
     _draw_scene(ax, runs[0][2])
     for row, positions, _ in runs:
@@ -162,104 +203,143 @@ def plot_track_3d(
     ax.set_xlim(low[0], high[0])
     ax.set_ylim(low[1], high[1])
     ax.set_zlim(0, high[2])
-    ax.set_box_aspect(high - low)
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_zlabel("z [m]")
+    # A narrow track gets a thin box: give the short axes a floor so their ticks and labels have room.
+    span = high - low
+    ax.set_box_aspect(np.maximum(span, 0.35 * span.max()), zoom=0.98)
+    ax.set_proj_type("ortho")  # no perspective: heights and gate sizes compare across the track
+    for axis, shortest in ((ax.xaxis, span[0]), (ax.yaxis, span[1]), (ax.zaxis, span[2])):
+        axis.set_major_locator(MaxNLocator(5 if shortest >= 0.6 * span.max() else 3))
+    ax.view_init(elev=28, azim=-62)
+    ax.set_xlabel("x [m]", labelpad=10)
+    ax.set_ylabel("y [m]", labelpad=6)
+    ax.set_zlabel("z [m]", labelpad=4)
     k = sum(bool(r["success"]) for r, _, _ in runs)
     who = agent or ", ".join(sorted({r["agent"] for r, _, _ in runs}))
     ax.set_title(f"{env_id}, seed {seed}: {who} ({k}/{len(runs)} successful)", fontsize=9)
-    return _save(fig, path)
+    handles = [
+        Line2D([], [], color="tab:orange", linewidth=2, label="gate"),
+        Patch(facecolor="tab:blue", alpha=0.35, label="obstacle"),
+        Line2D([], [], color="tab:green", marker="o", linestyle="", label="start"),
+        Line2D([], [], color="tab:green", label="successful flight"),
+    ]
+    if k < len(runs):
+        handles.append(Line2D([], [], color="tab:red", linestyle=":", marker="x", label="failed flight (x: end)"))
+    legend = ax.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(0.0, 0.95), frameon=False)
+    # Crop to what is drawn: a 3D axes' own box (which "tight" keeps) is mostly blank below the track.
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    parts = [axis.get_tightbbox(renderer) for axis in (ax.xaxis, ax.yaxis, ax.zaxis)]
+    parts += [ax.title.get_window_extent(renderer), legend.get_window_extent(renderer)]
+    drawn = Bbox.union([b for b in parts if b is not None and b.width > 0])
+    return _save(fig, path, dpi, bbox=drawn.transformed(fig.dpi_scale_trans.inverted()).padded(0.18))
 
 
 def render_episode_gif(
-    agent_spec: str, env_id: str, seed: int, path: str | Path, fps: int = 25, trust_code: bool = False
+    agent_spec: str,
+    env_id: str,
+    seed: int,
+    path: str | Path,
+    fps: int = 25,
+    trust_code: bool = False,
+    agent_kwargs: dict[str, Any] | None = None,
 ) -> Path:
-    """Fly one episode and write a GIF: chase-camera view beside the onboard inverse-depth image."""
-    import gymnasium as gym
+    """Fly one episode and write its video (``.gif`` or ``.mp4``): see :func:`racebench.video.render_episode_video`."""
+    from racebench.video import render_episode_video
 
-    from racebench.agents import load_agent
-    from racebench.evaluation import SingleTorchThread, run_episode
-
-    agent = load_agent(agent_spec, trust_code=trust_code)
-    env = gym.make(env_id, render_mode="rgb_array", obs_mode="vision")
-    frames: list[Image.Image] = []
-    every = max(1, round(env.unwrapped.control_freq / fps))
-
-    class Recorder(gym.Wrapper):
-        def step(self, action):
-            out = super().step(action)
-            if self.unwrapped.steps % every == 0 or out[2] or out[3]:
-                frames.append(_compose(self.render(), out[0]["depth"][0]))
-            return out
-
-    wrapped = Recorder(env)
-    if agent.obs_mode == "state":
-        # The recorder, inside, still sees the depth image; the state agent gets the state alone.
-        state_space = env.unwrapped.observation_space["state"]
-        wrapped = gym.wrappers.TransformObservation(wrapped, lambda o: o["state"], state_space)
-    with SingleTorchThread():
-        result = run_episode(agent, wrapped, seed)
-    env.close()
-    if not frames:
-        raise RuntimeError(f"episode produced no frames ({result})")
-    path = Path(path)
-    frames[0].save(path, save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0)
-    return path
+    return render_episode_video(
+        agent_spec, env_id, seed, path, fps=fps, trust_code=trust_code, agent_kwargs=agent_kwargs
+    )[0]
 
 
-def _compose(rgb: np.ndarray, depth: np.ndarray) -> Image.Image:
-
-    h = rgb.shape[0]
-    depth_img = Image.fromarray((np.clip(depth, 0, 1) * 255).astype(np.uint8)).resize((h, h), Image.NEAREST)
-    canvas = Image.new("RGB", (rgb.shape[1] + h, h))
-    canvas.paste(Image.fromarray(rgb), (0, 0))
-    canvas.paste(depth_img.convert("RGB"), (rgb.shape[1], 0))
-    return canvas
+#: SB3's own CSV logger (``configure(folder, ["csv"])``): its column for each of racebench's progress columns.
+SB3_PROGRESS_COLUMNS: dict[str, str] = {
+    "time/total_timesteps": "timesteps",
+    "rollout/ep_rew_mean": "mean_return",
+    "rollout/success_rate": "success_rate",
+}
 
 
-def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int = 20) -> Path:
+def read_progress(csv_path: str | Path) -> pd.DataFrame:
+    """A training run's ``progress.csv`` as ``timesteps``, ``mean_return``, ``success_rate``, ``level``.
+
+    Either ``racebench train``'s file or SB3's own (``time/total_timesteps``, ``rollout/ep_rew_mean`` and,
+    when the env reports ``is_success``, ``rollout/success_rate``; it has no curriculum level, which is NaN).
+    """
+    progress = pd.read_csv(csv_path)
+    if {"time/total_timesteps", "rollout/ep_rew_mean"} <= set(progress.columns):
+        progress = progress.rename(columns=SB3_PROGRESS_COLUMNS)
+        for column in ("success_rate", "level"):
+            if column not in progress:
+                progress[column] = np.nan
+        # SB3 logs a row per update; ep_rew_mean stays empty until the first episode has ended.
+        return progress.sort_values("timesteps").reset_index(drop=True)
+    missing = {"timesteps", "mean_return", "success_rate", "level"} - set(progress.columns)
+    if missing:
+        raise ValueError(
+            f"{csv_path}: missing columns {sorted(missing)} (neither racebench train's progress.csv nor SB3's)"
+        )
+    return progress
+
+
+def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int = 20, dpi: int = DEFAULT_DPI) -> Path:
     """The paper's Fig. 5 from training runs: mean episode return (rolling mean over ``smooth`` updates),
     success rate from the track start, and curriculum level, against environment steps.
 
-    ``runs``: run directories (holding ``progress.csv``) or ``progress.csv`` files; each is labelled by its
-    ``config.yaml`` name when present, else by its directory name.
+    ``runs``: run directories (holding ``progress.csv``) or ``progress.csv`` files, of ``racebench train`` or of
+    SB3's CSV logger (:func:`read_progress`); each is labelled by its ``config.yaml`` name when present, else by
+    its directory name. The level panel is left out when no run has a curriculum.
     """
     import yaml
 
-    fig, axes = plt.subplots(3, 1, figsize=(6.4, 6.4), sharex=True, height_ratios=[2, 1.4, 1])
+    loaded = []
     for run in runs:
         run = Path(run)
         csv_path = run / "progress.csv" if run.is_dir() else run
         if not csv_path.is_file():
             raise ValueError(f"{run}: no progress.csv (is it a `racebench train` run directory?)")
-        progress = pd.read_csv(csv_path)
-        missing = {"timesteps", "mean_return", "success_rate", "level"} - set(progress.columns)
-        if missing:
-            raise ValueError(f"{csv_path}: missing columns {sorted(missing)}")
         config = csv_path.parent / "config.yaml"
         label = yaml.safe_load(config.read_text()).get("name") if config.is_file() else csv_path.parent.name
+        loaded.append((label, read_progress(csv_path)))
+    levels = any(progress["level"].notna().any() for _, progress in loaded)
+    rows, ratios = (3, [2, 1.4, 1]) if levels else (2, [2, 1.4])
+    fig, axes = plt.subplots(rows, 1, figsize=(6.4, 6.4 if levels else 5.0), sharex=True, height_ratios=ratios)
+    for label, progress in loaded:
         steps = progress["timesteps"] / 1e6
         window = dict(window=smooth, min_periods=1)
         (line,) = axes[0].plot(steps, progress["mean_return"].rolling(**window).mean(), label=label)
         axes[1].plot(steps, 100 * progress["success_rate"].rolling(**window).mean(), color=line.get_color())
-        axes[2].step(steps, progress["level"], where="post", color=line.get_color())
+        if levels:
+            axes[2].step(steps, progress["level"], where="post", color=line.get_color())
     axes[0].set_ylabel("mean episode return")
     axes[0].legend(loc="best", fontsize=8)
-    axes[1].set_ylabel("success from start [%]")
+    axes[1].set_ylabel("success from start [%]" if levels else "success rate [%]")
     axes[1].set_ylim(-2, 102)
-    axes[2].set_ylabel("level")
-    axes[2].set_yticks([1, 2, 3])
-    axes[2].set_xlabel("environment steps [millions]")
+    if levels:
+        axes[2].set_ylabel("level")
+        axes[2].set_yticks([1, 2, 3])
+    axes[-1].set_xlabel("environment steps [millions]")
     for ax in axes:
         ax.grid(alpha=0.3)
-    return _save(fig, path)
+    return _save(fig, path, dpi)
 
 
-def _save(fig, path: str | Path) -> Path:
+def _save(fig, path: str | Path, dpi: int = DEFAULT_DPI, bbox: Bbox | None = None) -> Path:
+    """Write ``fig`` to ``path`` in the format of its suffix (see FIGURE_FORMATS), cropped to what is drawn
+    (``bbox``, in inches, where matplotlib's own "tight" box would keep blank space)."""
     path = Path(path)
+    fmt = path.suffix.lower().lstrip(".")
+    if fmt not in FIGURE_FORMATS:
+        plt.close(fig)
+        raise ValueError(
+            f"{str(path)!r}: figures are written as {', '.join(FIGURE_FORMATS)}, not {fmt or 'no suffix'!r}"
+        )
+    if isinstance(dpi, bool) or not isinstance(dpi, int) or not 20 <= dpi <= 2400:
+        plt.close(fig)
+        raise ValueError(f"dpi must be an int in [20, 2400], got {dpi!r}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=150)
+    if not any(getattr(ax, "name", "") == "3d" for ax in fig.axes):  # tight_layout cannot place 3D axes
+        fig.tight_layout()
+    # "tight" crops the blank margin and keeps legends placed outside the axes.
+    fig.savefig(path, dpi=dpi, bbox_inches=bbox or "tight", pad_inches=0.05)
     plt.close(fig)
     return path

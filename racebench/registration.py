@@ -23,6 +23,11 @@ ENV_VERSION = 2
 TRACK_IDS: dict[str, str] = {"S": "S", "J": "J", "Circle": "Circle"}
 DENSITIES: tuple[int, ...] = (2, 3, 4, 5)
 GATE_SHIFTS: tuple[str, ...] = ("0.3", "0.5", "0.7", "1.0")
+#: ``spec.max_episode_steps`` of every id: ``RaceEnv``'s own time limit at its defaults (max_episode_time 15 s ×
+#: control_freq 50 Hz; a test keeps them equal). ``gym.make`` wraps the env in a ``TimeLimit`` of this many steps,
+#: which truncates on the same step as the env does, so nothing changes at the defaults; an env made with a longer
+#: ``max_episode_time`` or a higher ``control_freq`` needs ``gym.make(..., max_episode_steps=N)`` as well.
+MAX_EPISODE_STEPS = 750
 LOW_SPEED = 3.0  # m/s, curriculum levels 1-2
 HIGH_SPEED = 8.0  # m/s, level 3 and evaluation
 CURRICULUM: dict[int, dict[str, Any]] = {
@@ -59,5 +64,6 @@ def register_envs() -> None:
                 id=env_id,
                 entry_point="racebench.env:RaceEnv",
                 vector_entry_point="racebench.vector:RaceVectorEnv",  # gym.make_vec: batched, worker processes
+                max_episode_steps=MAX_EPISODE_STEPS,
                 kwargs=kwargs,
             )

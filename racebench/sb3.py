@@ -28,14 +28,25 @@ class RaceSB3VecEnv(VecEnv):
         num_envs: number of envs.
         num_processes: 1 (every env in this process) or k > 1 (this process and k − 1 worker processes).
         context: multiprocessing start method for the workers (default ``forkserver`` where available).
+        max_episode_steps: also truncate after this many steps, as the ``TimeLimit`` around ``gym.make``'s envs
+            does (``None``: the envs' own time limit alone).
         **env_kwargs: ``RaceEnv`` kwargs shared by every env.
     """
 
-    def __init__(self, num_envs: int, *, num_processes: int = 1, context: str | None = None, **env_kwargs: Any) -> None:
+    def __init__(
+        self,
+        num_envs: int,
+        *,
+        num_processes: int = 1,
+        context: str | None = None,
+        max_episode_steps: int | None = None,
+        **env_kwargs: Any,
+    ) -> None:
         probe = probe_env(env_kwargs)
         try:
+            mode = AutoresetMode.SAME_STEP
             self._backend = make_backend(
-                num_envs, num_processes, context, AutoresetMode.SAME_STEP, SB3_INFOS, env_kwargs, probe
+                num_envs, num_processes, context, mode, SB3_INFOS, env_kwargs, probe, max_episode_steps
             )
         finally:
             probe.close()  # only its spaces and settings are used from here on
@@ -105,10 +116,12 @@ def make_sb3_vec_env(
     env_id: str, n_envs: int = 1, seed: int | None = None, num_processes: int = 1, monitor: bool = True, **kwargs: Any
 ) -> VecEnv:
     """SB3's ``make_vec_env`` for a registered id, batched: a :class:`RaceSB3VecEnv` (the id's kwargs updated
-    by ``kwargs``), env i seeded ``seed + i`` at the first reset, wrapped in ``VecMonitor`` (episode returns
-    and lengths in ``info["episode"]``, as ``make_vec_env``'s ``Monitor``) unless ``monitor=False``."""
+    by ``kwargs``, its ``spec.max_episode_steps`` unless ``kwargs`` sets ``max_episode_steps``, as ``gym.make``
+    does), env i seeded ``seed + i`` at the first reset, wrapped in ``VecMonitor`` (episode returns and lengths
+    in ``info["episode"]``, as ``make_vec_env``'s ``Monitor``) unless ``monitor=False``."""
     spec = gym.spec(env_id)
-    venv: VecEnv = RaceSB3VecEnv(n_envs, num_processes=num_processes, **{**spec.kwargs, **kwargs})
+    kwargs = {"max_episode_steps": spec.max_episode_steps, **spec.kwargs, **kwargs}
+    venv: VecEnv = RaceSB3VecEnv(n_envs, num_processes=num_processes, **kwargs)
     if seed is not None:
         venv.seed(seed)
     return VecMonitor(venv) if monitor else venv

@@ -1,7 +1,8 @@
 """PyBullet world of one environment: ground, drone body, gate frames and a pool of obstacle bodies.
 
-One ``BulletClient`` (``p.DIRECT``) per environment. The world is built once; a new episode's scene is
-loaded by moving bodies with ``resetBasePositionAndOrientation``. Obstacle bodies are pooled by shape
+One ``BulletClient`` (``p.DIRECT``; ``p.GUI`` for ``render_mode="human"``, same physics) per environment.
+The world is built once; a new episode's scene is loaded by moving bodies with
+``resetBasePositionAndOrientation``. Obstacle bodies are pooled by shape
 (the obstacle generator quantises sizes), unused ones are parked far below the arena.
 
 The per-physics-step path (:meth:`Simulation.step_raw`) calls the ``pybullet``
@@ -87,6 +88,27 @@ def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
     return (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
 
 
+def _gui_client() -> bullet_client.BulletClient:
+    """A client with PyBullet's GUI window, or a RuntimeError that says why there is none."""
+    from racebench.env import display_available
+
+    if not display_available():
+        raise RuntimeError(
+            "render_mode='human' opens PyBullet's GUI window and needs a display: DISPLAY is not set "
+            "(on a headless machine run under xvfb-run, or use render_mode='rgb_array')"
+        )
+    why = "PyBullet allows one GUI window per process: close the other human-mode env first"
+    try:
+        client = bullet_client.BulletClient(connection_mode=p.GUI)
+    except p.error as exc:
+        raise RuntimeError(f"render_mode='human': PyBullet could not open its GUI ({exc}); {why}") from exc
+    if client._client < 0:  # a second GUI connection is refused with a printed message, not an exception
+        client._client = -1
+        raise RuntimeError(f"render_mode='human': PyBullet could not open its GUI; {why}")
+    client.configureDebugVisualizer(p.COV_ENABLE_GUI, 0)  # the scene alone, without PyBullet's side panels
+    return client
+
+
 class Simulation:
     """The physics world of one :class:`~racebench.env.RaceEnv`.
 
@@ -94,11 +116,15 @@ class Simulation:
         track: the track whose gates are built (their poses change per episode).
         params: airframe of the drone (mass, inertia, collision radius).
         physics_freq: physics rate in Hz.
+        gui: open PyBullet's GUI window (needs a display; one per process) instead of the headless client.
     """
 
-    def __init__(self, track: Track, params: QuadrotorParams, physics_freq: int) -> None:
-        with _quiet_stdout():
-            self.client = bullet_client.BulletClient(connection_mode=p.DIRECT)
+    def __init__(self, track: Track, params: QuadrotorParams, physics_freq: int, gui: bool = False) -> None:
+        if gui:
+            self.client = _gui_client()
+        else:
+            with _quiet_stdout():
+                self.client = bullet_client.BulletClient(connection_mode=p.DIRECT)
         c = self.client
         c.setGravity(0.0, 0.0, -params.gravity)
         c.setTimeStep(1.0 / physics_freq)

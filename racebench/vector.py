@@ -35,6 +35,8 @@ from gymnasium.vector.utils import batch_space
 
 from racebench.env import STATE_DIM, RaceEnv
 
+#: ``multiprocessing.RawArray`` type codes of the depth dtypes (``depth_format``) held in shared memory.
+_TYPECODES: dict[str, str] = {"float32": "f", "uint8": "B"}
 GYM_INFOS, SB3_INFOS = "gym", "sb3"  # info formats: Gymnasium's dict of arrays with "_key" masks; SB3's list of dicts
 
 
@@ -43,9 +45,10 @@ def stack_infos(infos: Sequence[dict[str, Any] | None], n: int) -> dict[str, Any
     """Per-env info dicts → Gymnasium's vector form: ``{key: array (n, ...), "_key": presence mask}``.
 
     The same arrays as ``VectorEnv._add_info`` builds env by env (nested dicts recursively, ``final_obs`` as
-    an object array), except that a key whose values mix numbers and other objects (``lap_time``: a float
-    once successful, else ``None``) is an object array whichever env comes first, where ``_add_info`` raises
-    if the first one holds a float.
+    an object array), except that a key whose values mix numbers and other objects is an object array whichever
+    env comes first, where ``_add_info`` makes a number array if the first one holds a number (and stores
+    ``None`` there as NaN or fails). ``RaceEnv``'s own infos hold no such mix (``lap_time`` is only there
+    once a lap is done), so they stack alike in every vectorization mode.
     """
     keys: dict[str, None] = {}
     for info in infos:
@@ -127,12 +130,15 @@ class EnvBatch:
     one :class:`~racebench.raycast.BatchDepthRenderer` call per step.
 
     Observations are written into caller-owned arrays (shared memory in a worker process): ``state``
-    ``(n, 17)`` float32 and, for ``obs_mode="vision"``, ``depth`` ``(n, 1, size, size)`` float32.
+    ``(n, 17)`` float32 and, for ``obs_mode="vision"``, ``depth`` ``(n, *depth space shape)`` of the depth
+    space's dtype (``(n, 1, size, size)`` float32, or ``(n, size, size, 1)`` uint8 with ``depth_format="uint8"``).
 
     Args:
         env_kwargs: one ``RaceEnv`` kwargs dict per env (same observation mode and camera for all).
         autoreset_mode: Gymnasium's autoreset mode (see :meth:`step`).
         state, depth: the output arrays (allocated here when ``None``).
+        max_episode_steps: also truncate an episode after this many steps, as Gymnasium's ``TimeLimit`` does
+            around each env that ``gym.make`` builds (``None``: the envs' own time limit alone).
     """
 
     def __init__(
@@ -141,19 +147,24 @@ class EnvBatch:
         autoreset_mode: AutoresetMode,
         state: np.ndarray | None = None,
         depth: np.ndarray | None = None,
+        max_episode_steps: int | None = None,
     ) -> None:
         self.envs = [RaceEnv(**kw) for kw in env_kwargs]
+        self.max_episode_steps = max_episode_steps
         first = self.envs[0]
-        if any(e.obs_mode != first.obs_mode or e.renderer != first.renderer for e in self.envs):
-            raise ValueError("all envs of a vector env need the same obs_mode and renderer")
+        if any(
+            (e.obs_mode, e.renderer, e.depth_format) != (first.obs_mode, first.renderer, first.depth_format)
+            for e in self.envs
+        ):
+            raise ValueError("all envs of a vector env need the same obs_mode, renderer and depth_format")
         n = len(self.envs)
         self.autoreset_mode = autoreset_mode
         self.vision = first.obs_mode == "vision"
-        size = first.camera.size
         self.state = np.zeros((n, STATE_DIM), dtype=np.float32) if state is None else state
         self.depth = None
         if self.vision:
-            self.depth = np.zeros((n, 1, size, size), dtype=np.float32) if depth is None else depth
+            space = first.observation_space["depth"]
+            self.depth = np.zeros((n, *space.shape), dtype=space.dtype) if depth is None else depth
         self.raycaster = None
         if self.vision and first.renderer == "raycast":
             from racebench.raycast import BatchDepthRenderer
@@ -211,6 +222,8 @@ class EnvBatch:
                 infos[i] = env.reset_state()
             else:
                 rewards[i], terminations[i], truncations[i], infos[i] = env.advance(actions[i])
+                if self.max_episode_steps is not None and env.steps >= self.max_episode_steps:
+                    truncations[i] = True  # TimeLimit's rule: also on a terminating step
         observations = self._observe(range(n))
         done = terminations | truncations
         if self.autoreset_mode == AutoresetMode.SAME_STEP and done.any():
@@ -273,16 +286,18 @@ def _worker(
     offset: int,
     total: int,
     state_shape: tuple[int, ...],
-    depth_shape: tuple[int, ...] | None,
+    depth_layout: tuple[tuple[int, ...], str] | None,
+    max_episode_steps: int | None,
 ) -> None:
     """Worker process: owns an :class:`EnvBatch` writing into its slice of the shared observation arrays."""
     try:
         n = len(env_kwargs)
         state = np.frombuffer(buffers[0], dtype=np.float32).reshape(total, *state_shape)[offset : offset + n]
         depth = None
-        if depth_shape is not None:
-            depth = np.frombuffer(buffers[1], dtype=np.float32).reshape(total, *depth_shape)[offset : offset + n]
-        batch = EnvBatch(env_kwargs, autoreset_mode, state, depth)
+        if depth_layout is not None:
+            shape, dtype = depth_layout
+            depth = np.frombuffer(buffers[1], dtype=dtype).reshape(total, *shape)[offset : offset + n]
+        batch = EnvBatch(env_kwargs, autoreset_mode, state, depth, max_episode_steps)
         conn.send(("ok", os.getpid()))
     except Exception:  # report to the parent, which raises
         conn.send(("error", traceback.format_exc()))
@@ -325,7 +340,8 @@ class _Backend:
         num_processes: int,
         context: str | None,
         state_shape: tuple[int, ...],
-        depth_shape: tuple[int, ...] | None,
+        depth_layout: tuple[tuple[int, ...], str] | None,
+        max_episode_steps: int | None = None,
     ) -> None:
         n = len(env_kwargs)
         self.info_format = info_format
@@ -337,22 +353,29 @@ class _Backend:
         buffers: tuple[Any, Any] = (None, None)
         if num_processes == 1:
             self.state = np.zeros((n, *state_shape), dtype=np.float32)
-            self.depth = np.zeros((n, *depth_shape), dtype=np.float32) if depth_shape is not None else None
+            self.depth = None
+            if depth_layout is not None:
+                self.depth = np.zeros((n, *depth_layout[0]), dtype=depth_layout[1])
         else:
             if context is None:  # as SB3's SubprocVecEnv: fork is unsafe with threads (torch, numba)
                 context = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
             ctx = mp.get_context(context)
             state_buf = ctx.RawArray("f", n * int(np.prod(state_shape)))
-            depth_buf = ctx.RawArray("f", n * int(np.prod(depth_shape))) if depth_shape is not None else None
+            depth_buf = None
+            self.depth = None
+            if depth_layout is not None:
+                shape, dtype = depth_layout
+                depth_buf = ctx.RawArray(_TYPECODES[dtype], n * int(np.prod(shape)))
+                self.depth = np.frombuffer(depth_buf, dtype=dtype).reshape(n, *shape)
             buffers = (state_buf, depth_buf)
             self.state = np.frombuffer(state_buf, dtype=np.float32).reshape(n, *state_shape)
-            self.depth = None
-            if depth_buf is not None:
-                self.depth = np.frombuffer(depth_buf, dtype=np.float32).reshape(n, *depth_shape)
             for offset, size in zip(self.offsets[1:], self.sizes[1:], strict=True):
                 parent, child = ctx.Pipe()
                 chunk = env_kwargs[offset : offset + size]
-                args = (child, chunk, autoreset_mode, info_format, buffers, offset, n, state_shape, depth_shape)
+                args = (
+                    child, chunk, autoreset_mode, info_format, buffers, offset, n, state_shape, depth_layout,
+                    max_episode_steps,
+                )  # fmt: skip
                 process = ctx.Process(target=_worker, args=args, daemon=True)
                 process.start()
                 child.close()
@@ -361,7 +384,7 @@ class _Backend:
         first = self.sizes[0]
         try:
             depth = self.depth[:first] if self.depth is not None else None
-            self.local = EnvBatch(env_kwargs[:first], autoreset_mode, self.state[:first], depth)
+            self.local = EnvBatch(env_kwargs[:first], autoreset_mode, self.state[:first], depth, max_episode_steps)
             self.pids = [os.getpid(), *self._gather()]
         except BaseException:
             self.close()
@@ -469,15 +492,25 @@ def make_backend(
     info_format: str,
     env_kwargs: dict[str, Any],
     probe: RaceEnv,
+    max_episode_steps: int | None = None,
 ) -> _Backend:
     """The envs of a front end (shared by :class:`RaceVectorEnv` and :class:`racebench.sb3.RaceSB3VecEnv`)."""
+    if max_episode_steps is not None and (
+        isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, int) or max_episode_steps < 1
+    ):
+        raise ValueError(f"max_episode_steps must be a positive int or None, got {max_episode_steps!r}")
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
     if isinstance(num_processes, bool) or not isinstance(num_processes, int) or not 1 <= num_processes <= num_envs:
         raise ValueError(f"num_processes must be an int in [1, num_envs={num_envs}], got {num_processes!r}")
-    depth_shape = (1, probe.camera.size, probe.camera.size) if probe.obs_mode == "vision" else None
+    depth_layout = None
+    if probe.obs_mode == "vision":
+        space = probe.observation_space["depth"]
+        depth_layout = (tuple(space.shape), np.dtype(space.dtype).name)
     kwargs = [dict(env_kwargs) for _ in range(num_envs)]
-    return _Backend(kwargs, autoreset_mode, info_format, num_processes, context, (STATE_DIM,), depth_shape)
+    return _Backend(
+        kwargs, autoreset_mode, info_format, num_processes, context, (STATE_DIM,), depth_layout, max_episode_steps
+    )
 
 
 def probe_env(env_kwargs: dict[str, Any]) -> RaceEnv:
@@ -500,6 +533,9 @@ class RaceVectorEnv(gym.vector.VectorEnv):
             and rendering their depth in one call.
         autoreset_mode: Gymnasium's autoreset mode (``NEXT_STEP``, ``SAME_STEP`` or ``DISABLED``, or its value).
         context: multiprocessing start method for the workers (default ``forkserver`` where available).
+        max_episode_steps: truncate after this many steps as ``gym.make``'s ``TimeLimit`` does (``gym.make_vec``
+            passes the id's ``spec.max_episode_steps``, which equals the envs' own limit at the default
+            ``max_episode_time`` and ``control_freq``); ``None``: the envs' own time limit alone.
         **env_kwargs: ``RaceEnv`` kwargs shared by every env (e.g. ``track``, ``obs_mode``, ``renderer``).
     """
 
@@ -510,6 +546,7 @@ class RaceVectorEnv(gym.vector.VectorEnv):
         num_processes: int = 1,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         context: str | None = None,
+        max_episode_steps: int | None = None,
         **env_kwargs: Any,
     ) -> None:
         self.autoreset_mode = AutoresetMode(autoreset_mode)
@@ -521,7 +558,7 @@ class RaceVectorEnv(gym.vector.VectorEnv):
         self.metadata = {**probe.metadata, "autoreset_mode": self.autoreset_mode}
         try:
             self._backend = make_backend(
-                num_envs, num_processes, context, self.autoreset_mode, GYM_INFOS, env_kwargs, probe
+                num_envs, num_processes, context, self.autoreset_mode, GYM_INFOS, env_kwargs, probe, max_episode_steps
             )
         finally:
             probe.close()  # only its spaces and settings are used from here on

@@ -11,20 +11,12 @@ def test_bench_quick_writes_every_measurement(tmp_path, capsys) -> None:
     out = tmp_path / "bench.csv"
     assert main(["bench", "--quick", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "load average" in printed and "targets (2 cores)" in printed
+    assert "load average" in printed and "skipped (--quick)" in printed
+    assert "MISSED" not in printed and "targets (2 cores)" not in printed  # no verdicts on tiny sizes
     rows = list(csv.DictReader(out.open()))
     values = {row["name"]: float(row["value"]) for row in rows}
-    assert {row["section"] for row in rows} == {
-        "depth",
-        "steps",
-        "evaluation",
-        "cpu",
-        "training",
-        "parts",
-        "memory",
-        "targets",
-        "run",
-    }
+    assert {row["section"] for row in rows} == {"depth", "steps", "cpu", "parts", "memory", "run"}
+    assert values["wall time"] < 15, "bench --quick must stay a quick smoke test"
     for name in (
         "pybullet getCameraImage (TinyRenderer)",
         "raycast, one camera per call",
@@ -36,13 +28,6 @@ def test_bench_quick_writes_every_measurement(tmp_path, capsys) -> None:
         "vector env, vision, 4 envs, 2 processes",
         "peak RSS, this process",
         "peak RSS, largest worker process",
-        "state-ppo",
-        "vision-ppo, raycast depth",
-        "vision-ppo, pybullet depth",
-        "ratio vision-ppo raycast / pybullet",
-        "evaluation of vision-ppo-S, raycast depth, lockstep 4",
-        "env alone, vision-ppo-S, raycast depth episodes replayed",
-        "ratio evaluation / env alone, state-ppo-S",
         "collision check (swept sphere, 1 substep)",
     ):
         assert values[name] > 0, name

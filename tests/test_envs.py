@@ -138,7 +138,6 @@ def test_observation_layout_at_reset() -> None:
     assert obs["depth"].shape == (1, 64, 64) and obs["depth"].dtype == np.float32
     assert info == {
         "is_success": False,
-        "lap_time": None,
         "gates_passed": 0,
         "crashed": False,
         "crash_reason": None,
@@ -239,3 +238,85 @@ def test_copies_and_pickles_are_refused_with_a_way_out() -> None:
 def test_bad_values_are_named(kwargs: dict, named: str) -> None:
     with pytest.raises(ValueError, match=f"^{named} must"):
         gym.make("RaceObs-S-v0", **kwargs)
+
+
+# ------------------------------------------------------- uint8 depth (stock SB3)
+
+
+@pytest.mark.parametrize("env_id", ["RaceObs-S-v0", "RaceObs-J-Level1-v0"])
+def test_uint8_depth_passes_both_checkers_without_a_warning(env_id: str) -> None:
+    import warnings
+
+    env = gym.make(env_id, depth_format="uint8")
+    assert env.observation_space["depth"] == gym.spaces.Box(0, 255, (64, 64, 1), np.uint8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the float format's "not an image" warning must be gone
+        sb3_check_env(env.unwrapped, warn=True)
+    gym_check_env(env.unwrapped)
+    env.close()
+
+
+def test_uint8_depth_is_the_float_image_rounded_and_deterministic() -> None:
+    from racebench.env import depth_to_uint8
+
+    small, plain = gym.make("RaceObs-S-v0", depth_format="uint8"), gym.make("RaceObs-S-v0")
+    a, b = rollout(small, seed=5, steps=40), rollout(plain, seed=5, steps=40)
+    assert len(a) == len(b)
+    for got, float_step in zip(a, b, strict=True):
+        obs, float_obs = got[0], float_step[0]
+        assert obs["depth"].dtype == np.uint8 and obs["depth"].shape == (64, 64, 1)
+        np.testing.assert_array_equal(obs["depth"], depth_to_uint8(float_obs["depth"]))
+        np.testing.assert_array_equal(obs["state"], float_obs["state"])
+        assert_same(got[1:], float_step[1:])  # rewards, flags and infos do not depend on the format
+    first = b[0][0]["depth"]  # rounded to the nearest of 256 levels
+    assert np.abs(depth_to_uint8(first) / 255.0 - first[0, :, :, None]).max() <= 0.5 / 255 + 1e-6
+    assert_same(rollout(small, seed=5, steps=40), rollout(gym.make("RaceObs-S-v0", depth_format="uint8"), 5, 40))
+    small.close()
+    plain.close()
+    with pytest.raises(ValueError, match="^depth_format must"):
+        gym.make("RaceObs-S-v0", depth_format="float16")
+
+
+# ------------------------------------------------------- time limit in the spec
+
+
+def test_the_spec_time_limit_is_the_envs_own() -> None:
+    from racebench.registration import MAX_EPISODE_STEPS
+
+    for env_id in ALL_IDS:
+        assert gym.spec(env_id).max_episode_steps == MAX_EPISODE_STEPS
+    env = gym.make("RaceObs-Circle-GateShift0.5-v0", obs_mode="state")
+    assert env.spec.max_episode_steps == env.unwrapped.max_steps == MAX_EPISODE_STEPS
+    env.close()
+
+
+def test_time_limit_truncates_once_on_the_envs_own_step() -> None:
+    """gym.make's TimeLimit and the env's own limit end the same episode on the same step, with the same flags."""
+    from racebench.env import RaceEnv
+
+    wrapped = gym.make("RaceObs-S-Level1-v0", obs_mode="state")
+    bare = RaceEnv(**{**ENV_KWARGS["RaceObs-S-Level1-v0"], "obs_mode": "state"})
+    hover = np.array([bare.params.hover_action, 0, 0, 0], dtype=np.float32)
+    flags = []
+    for env in (wrapped, bare):
+        env.reset(seed=1)
+        trace = []
+        while not (trace and (trace[-1][0] or trace[-1][1])):
+            trace.append(env.step(hover)[2:4])
+        flags.append(trace)
+        env.close()
+    assert flags[0] == flags[1]
+    assert len(flags[0]) == wrapped.spec.max_episode_steps and flags[0][-1] == (False, True)
+
+
+@pytest.mark.parametrize("track", ["S", "J", "Circle"])
+def test_density3_is_an_alias_of_the_main_id(track: str) -> None:
+    alias, main = f"RaceObs-{track}-Density3-v0", f"RaceObs-{track}-v0"
+    assert ENV_KWARGS[alias] == ENV_KWARGS[main]  # the README says so
+    a, b = gym.make(alias, obs_mode="state"), gym.make(main, obs_mode="state")
+    a.reset(seed=9)
+    b.reset(seed=9)
+    assert a.unwrapped.scene.to_dict() == b.unwrapped.scene.to_dict()
+    assert_same(rollout(a, seed=9, steps=30), rollout(b, seed=9, steps=30))
+    a.close()
+    b.close()

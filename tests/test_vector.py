@@ -189,3 +189,64 @@ def test_stack_and_concat_infos_follow_gymnasium() -> None:
     reference.close()
     # Joining slices equals stacking all at once.
     assert_same(stack_infos(infos, 4), concat_infos([stack_infos(infos[:1], 1), stack_infos(infos[1:], 3)], [1, 3]))
+
+
+def test_uint8_depth_vector_env_equals_sync_vector_env() -> None:
+    n, kwargs = 3, {**KWARGS, "depth_format": "uint8"}
+    actions = random_actions(60, n, seed=2)
+    reference = SyncVectorEnv([lambda: RaceEnv(**kwargs) for _ in range(n)])
+    venv = RaceVectorEnv(n, num_processes=2, **kwargs)  # uint8 shared memory from the worker
+    try:
+        assert venv.single_observation_space == reference.single_observation_space
+        got = run_gym(venv, actions, seed=13)
+        assert got[0][0]["depth"].dtype == np.uint8 and got[0][0]["depth"].shape == (n, 64, 64, 1)
+        assert_same(run_gym(reference, actions, seed=13), got)
+    finally:
+        venv.close()
+        reference.close()
+
+
+def test_lap_time_has_one_dtype_in_every_vectorization_mode() -> None:
+    """Env 0 finishes a lap while env 1 hovers: Gymnasium's SyncVectorEnv and racebench's give float64 both."""
+    from racebench.control import GateFollower
+
+    kwargs = dict(track="S", density=0, obs_mode="state", desired_speed=3.0)
+    reference = SyncVectorEnv([lambda: RaceEnv(**kwargs) for _ in range(2)])
+    venv = RaceVectorEnv(2, **kwargs)
+    pilots = [(GateFollower(), reference.envs[0]), (GateFollower(), venv._backend.local.envs[0])]
+    try:
+        assert_same(reference.reset(seed=0), venv.reset(seed=0))
+        hover = np.array([reference.envs[1].params.hover_action, 0, 0, 0])
+        lap = False
+        for _ in range(700):
+            actions = [np.stack([pilot.act_privileged(env), hover]).astype(np.float32) for pilot, env in pilots]
+            expected, got = reference.step(actions[0]), venv.step(actions[1])
+            if "lap_time" in expected[4] or "lap_time" in got[4]:  # only on a step that finishes a lap
+                assert expected[4]["lap_time"].dtype == got[4]["lap_time"].dtype == np.float64
+            assert_same(expected, got)
+            if got[4]["is_success"][0]:
+                lap = True
+                assert got[4]["lap_time"][0] > 0 and got[4]["_lap_time"].tolist() == [True, False]
+                break
+        assert lap, "env 0 must finish its lap for the test to bite"
+    finally:
+        venv.close()
+        reference.close()
+
+
+def test_make_vec_applies_the_spec_time_limit_as_sync_mode_does() -> None:
+    venv = gym.make_vec("RaceObs-S-Level1-v0", num_envs=1, obs_mode="state", max_episode_time=20.0)
+    reference = gym.make_vec("RaceObs-S-Level1-v0", num_envs=1, vectorization_mode="sync", obs_mode="state",
+                             max_episode_time=20.0)  # fmt: skip
+    try:
+        assert venv.unwrapped._backend.local.max_episode_steps == venv.spec.max_episode_steps == 750
+        hover = np.array([[reference.envs[0].unwrapped.params.hover_action, 0, 0, 0]], dtype=np.float32)
+        venv.reset(seed=2)
+        reference.reset(seed=2)
+        for _ in range(750):  # the env's own limit is 1,000 steps; both cut at the spec's 750, as gym.make does
+            expected, got = reference.step(hover), venv.step(hover)
+            assert_same(expected, got)
+        assert got[3][0] and not got[2][0]
+    finally:
+        venv.close()
+        reference.close()

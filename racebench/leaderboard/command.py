@@ -26,7 +26,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="EPISODES",
         help="first evaluate on the main suite's public seeds, EPISODES per id (50 for a submission)",
     )
-    p_add.add_argument("--workers", type=int, default=1)
+    p_add.add_argument("--workers", type=int, default=1, help="evaluation processes for --evaluate (default 1)")
     p_add.add_argument("--trust-code", action="store_true", help="allow a .zip or Python policy (runs its code)")
     p_add.add_argument("--leaderboard", default=DEFAULT_LEADERBOARD, help=f"(default {DEFAULT_LEADERBOARD})")
 
@@ -35,7 +35,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p_ver.add_argument("--episodes", type=int, default=None, help="replay only the first N seeds of each cell")
     p_ver.add_argument("--out", default="runs/verify", help="where the replays go (default runs/verify; resumable)")
     p_ver.add_argument("--fresh", action="store_true", help="discard earlier replays of these entries first")
-    p_ver.add_argument("--workers", type=int, default=1)
+    p_ver.add_argument("--workers", type=int, default=1, help="evaluation processes (default 1)")
     p_ver.add_argument("--trust-code", action="store_true", help="allow .zip / Python entries outside the shipped ones")
     p_ver.add_argument("--leaderboard", default=DEFAULT_LEADERBOARD, help=f"(default {DEFAULT_LEADERBOARD})")
 

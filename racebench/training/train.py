@@ -648,15 +648,12 @@ def _restore_reward_stats(env: VecEnv, checkpoint: Path) -> None:
     a final model has ``vecnormalize.pkl`` in its run folder. Without them the resumed run re-estimates the
     return scale from scratch, which briefly changes the size of the advantages.
     """
+    from racebench.agents import vecnormalize_path  # the same files the evaluator's SB3 loader reads
+
     if not isinstance(env, VecNormalize):
         return
-    prefix, _, rest = checkpoint.name.rpartition("_")
-    if rest == "steps.zip":
-        stem, _, n = prefix.rpartition("_")
-        stats = checkpoint.with_name(f"{stem}_vecnormalize_{n}_steps.pkl")
-    else:
-        stats = checkpoint.parent / "vecnormalize.pkl"
-    if stats.exists():
+    stats = vecnormalize_path(checkpoint)
+    if stats is not None:
         saved = VecNormalize.load(str(stats), env.venv)
         env.ret_rms = saved.ret_rms  # rewards only: the policy never sees normalised observations
 

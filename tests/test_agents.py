@@ -1,0 +1,139 @@
+"""The SB3 loader: VecNormalize statistics beside a checkpoint, uint8-depth policies on the standard envs."""
+
+from __future__ import annotations
+
+import pickle
+import shutil
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+import racebench  # noqa: F401  (registers the ids)
+from racebench.agents import (
+    TRUSTED_CHECKPOINTS,
+    SB3Agent,
+    UntrustedCodeError,
+    load_agent,
+    policy_identity,
+    vecnormalize_path,
+)
+from racebench.records import sha256_file
+
+ROOT = Path(__file__).parents[1]
+LEVEL1 = "RaceObs-S-Level1-v0"
+
+
+@pytest.fixture(scope="module")
+def normalised_ppo(tmp_path_factory: pytest.TempPathFactory):
+    """A tiny PPO trained under VecNormalize(norm_obs=True): its zip with vecnormalize.pkl, and a bare copy."""
+    venv = VecNormalize(DummyVecEnv([lambda: gym.make(LEVEL1, obs_mode="state")]), norm_obs=True, norm_reward=False)
+    model = PPO("MlpPolicy", venv, n_steps=64, batch_size=32, n_epochs=1, seed=0,
+                policy_kwargs={"net_arch": [16]}, device="cpu")  # fmt: skip
+    model.learn(128)
+    assert np.any(np.abs(venv.obs_rms.mean) > 0.05), "the statistics must move observations for the test to bite"
+    folder = tmp_path_factory.mktemp("normalised")
+    model.save(folder / "model.zip")
+    venv.save(str(folder / "vecnormalize.pkl"))  # SB3's VecNormalize.save: a pickle at the given path
+    bare = tmp_path_factory.mktemp("bare") / "model.zip"
+    shutil.copy(folder / "model.zip", bare)
+    venv.training = False
+    return model, venv, folder / "model.zip", bare
+
+
+def observations(n: int = 6) -> np.ndarray:
+    return np.random.default_rng(0).uniform(-1, 1, size=(n, 17)).astype(np.float32)
+
+
+def test_saved_observation_statistics_are_applied(normalised_ppo) -> None:
+    model, venv, with_stats, bare = normalised_ppo
+    agent, plain = load_agent(str(with_stats), trust_code=True), load_agent(str(bare), trust_code=True)
+    assert agent.normalizer is not None and plain.normalizer is None
+    obs = observations()
+    agent.reset()
+    plain.reset()
+    got = np.array([agent.act(o) for o in obs])
+    raw = np.array([plain.act(o) for o in obs])
+    expected = np.array([model.predict(venv.normalize_obs(o), deterministic=True)[0] for o in obs])
+    np.testing.assert_array_equal(got, expected)  # SB3's own normalised predict
+    assert not np.allclose(got, raw), "with and without the statistics the actions must differ"
+    agent.start(len(obs))  # the lockstep path normalises too
+    np.testing.assert_allclose(agent.act_batch(list(obs)), expected, atol=1e-6)
+
+
+def test_the_statistics_are_part_of_the_policy_identity(normalised_ppo) -> None:
+    _, _, with_stats, bare = normalised_ppo
+    assert vecnormalize_path(with_stats) == with_stats.parent / "vecnormalize.pkl"
+    assert vecnormalize_path(bare) is None
+    identity = policy_identity(str(with_stats))
+    assert identity.sha256 == load_agent(str(with_stats), trust_code=True).sha256
+    assert identity.sha256 != sha256_file(with_stats)  # same zip bytes, other statistics: another policy
+    assert policy_identity(str(bare)).sha256 == sha256_file(bare)  # no statistics: the zip's hash, as before
+
+
+def test_periodic_checkpoint_statistics_are_found_by_sb3s_name(tmp_path: Path) -> None:
+    (tmp_path / "ppo_2048_steps.zip").write_bytes(b"")
+    (tmp_path / "vecnormalize.pkl").write_bytes(b"")  # a final model's, not this checkpoint's
+    assert vecnormalize_path(tmp_path / "ppo_2048_steps.zip") is None
+    (tmp_path / "ppo_vecnormalize_2048_steps.pkl").write_bytes(b"")
+    assert vecnormalize_path(tmp_path / "ppo_2048_steps.zip") == tmp_path / "ppo_vecnormalize_2048_steps.pkl"
+
+
+class _Marker:
+    """Unpickling it creates a file: proof that a pickle ran."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self):
+        return (Path.touch, (self.path,))
+
+
+def test_statistics_beside_a_trusted_checkpoint_still_need_trust_code(tmp_path: Path) -> None:
+    shipped = ROOT / "baselines/checkpoints" / TRUSTED_CHECKPOINTS[min(TRUSTED_CHECKPOINTS)]
+    copy = tmp_path / shipped.name
+    shutil.copy(shipped, copy)
+    assert isinstance(load_agent(str(copy)), SB3Agent)  # the zip alone is trusted by its bytes
+    marker = tmp_path / "ran"
+    (tmp_path / "vecnormalize.pkl").write_bytes(pickle.dumps(_Marker(marker)))
+    with pytest.raises(UntrustedCodeError, match="VecNormalize"):
+        load_agent(str(copy))
+    assert not marker.exists(), "the statistics must be refused before they are unpickled"
+
+
+def test_reward_only_statistics_leave_the_actions_alone(normalised_ppo, tmp_path: Path) -> None:
+    model, venv, with_stats, _ = normalised_ppo
+    shutil.copy(with_stats, tmp_path / "model.zip")
+    venv.norm_obs = False  # what racebench train saves: rewards normalised, observations not
+    try:
+        venv.save(str(tmp_path / "vecnormalize.pkl"))
+    finally:
+        venv.norm_obs = True
+    agent = load_agent(str(tmp_path / "model.zip"), trust_code=True)
+    assert agent.normalizer is None
+    obs = observations(3)
+    agent.reset()
+    np.testing.assert_array_equal([agent.act(o) for o in obs], [model.predict(o, deterministic=True)[0] for o in obs])
+
+
+def test_a_uint8_depth_policy_flies_the_standard_envs(tmp_path: Path) -> None:
+    """A policy trained with depth_format="uint8" gets, from the float envs, exactly the uint8 envs' input."""
+    small = gym.make(LEVEL1, depth_format="uint8")
+    model = PPO("MultiInputPolicy", small, n_steps=32, batch_size=32, n_epochs=1, seed=0, device="cpu")
+    model.learn(32)
+    model.save(tmp_path / "cnn.zip")
+    agent = load_agent(str(tmp_path / "cnn.zip"), trust_code=True)
+    assert agent.obs_mode == "vision" and agent.uint8_depth
+    standard = gym.make(LEVEL1)
+    obs_float, _ = standard.reset(seed=4)
+    obs_uint8, _ = small.reset(seed=4)
+    agent.reset()
+    expected = model.predict(obs_uint8, deterministic=True)[0]
+    np.testing.assert_array_equal(agent.act(obs_float), expected)
+    agent.start(2)
+    np.testing.assert_allclose(agent.act_batch([obs_float, obs_float]), [expected, expected], atol=1e-6)
+    standard.close()
+    small.close()

@@ -1,0 +1,105 @@
+"""Figures: formats and resolution, 0 % bars against cells without results, the legend off the bars, the 3D
+track figure cropped to what it draws, and a default output folder that is not the committed one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from racebench import cli, plots
+from racebench.evaluation import read_summaries
+
+ROOT = Path(__file__).parents[1]
+RESULTS = [str(ROOT / "results" / name) for name in ("hover", "planner")]
+
+
+@pytest.fixture(scope="module")
+def summary():
+    return read_summaries(RESULTS)
+
+
+def test_formats_and_dpi(summary, tmp_path: Path) -> None:
+    svg = plots.plot_success_by_track(summary, tmp_path / "a.svg")
+    assert b"<svg" in svg.read_bytes()[:500]
+    assert plots.plot_success_by_track(summary, tmp_path / "a.pdf").read_bytes().startswith(b"%PDF")
+    small = Image.open(plots.plot_success_by_track(summary, tmp_path / "small.png", dpi=100)).size
+    large = Image.open(plots.plot_success_by_track(summary, tmp_path / "large.png", dpi=200)).size
+    assert large[0] / small[0] == pytest.approx(2.0, rel=0.03) and large[1] / small[1] == pytest.approx(2.0, rel=0.03)
+    with pytest.raises(ValueError, match="png, pdf, svg"):
+        plots.plot_success_by_track(summary, tmp_path / "a.jpg")
+
+
+def test_zero_bars_differ_from_cells_without_results_and_the_legend_covers_no_bar(summary) -> None:
+    partial = summary[~((summary["agent"] == "hover") & (summary["env_id"] == "RaceObs-J-v0"))]
+    assert (summary[(summary["agent"] == "hover") & (summary["variant"] == "default")]["success_rate"] == 0).all()
+    fig = plots.success_by_track_figure(partial)
+    ax = fig.axes[0]
+    labels = [t.get_text() for t in ax.texts]
+    assert labels.count("0 %") == 2 and labels.count(plots.NOT_EVALUATED) == 1  # hover: S, Circle 0 %; J absent
+    legend = ax.get_legend()
+    assert "not evaluated" in legend.get_title().get_text()
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    assert legend.get_window_extent(renderer).x0 >= ax.get_window_extent(renderer).x1  # beside the axes
+    plots.plt.close(fig)
+
+
+def test_track_figure_is_cropped_to_its_drawing(tmp_path: Path) -> None:
+    path = plots.plot_track_3d(ROOT / "results" / "planner", "RaceObs-S-v0", tmp_path / "t.png", dpi=80)
+    pixels = np.asarray(Image.open(path).convert("L"))
+    blank_rows = np.all(pixels > 250, axis=1)
+    height = len(blank_rows)
+    top = np.argmax(~blank_rows)
+    bottom = np.argmax(~blank_rows[::-1])
+    assert top < 0.08 * height and bottom < 0.08 * height, (top, bottom, height)
+
+
+def test_plot_writes_outside_the_committed_figures_by_default(tmp_path: Path, monkeypatch) -> None:
+    parser = cli.build_parser()
+    for name in ("plot", "curves"):
+        sub = next(a for a in parser._actions if hasattr(a, "choices") and isinstance(a.choices, dict)).choices[name]
+        default = next(a.default for a in sub._actions if "--out" in a.option_strings)
+        assert not str(default).startswith("results"), f"{name} would overwrite committed figures"
+    committed = {p: p.stat().st_mtime_ns for p in (ROOT / "results" / "figures").iterdir()}
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["-q", "plot", *RESULTS, "--format", "svg", "--dpi", "100"]) == 0
+    assert (tmp_path / "runs" / "figures" / "success_by_track.svg").is_file()
+    assert committed == {p: p.stat().st_mtime_ns for p in (ROOT / "results" / "figures").iterdir()}
+    with pytest.raises(SystemExit, match="--dpi"):
+        cli.main(["-q", "plot", *RESULTS, "--dpi", "0"])
+
+
+def test_curves_read_sb3s_own_progress_csv(tmp_path: Path) -> None:
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import configure
+
+    run = tmp_path / "sb3-run"
+    model = PPO("MlpPolicy", gym.make("RaceObs-S-Level1-v0", obs_mode="state"), n_steps=128, batch_size=64,
+                n_epochs=1, seed=0, policy_kwargs={"net_arch": [8]}, device="cpu")  # fmt: skip
+    model.set_logger(configure(str(run), ["csv"]))
+    model.learn(384)
+    progress = plots.read_progress(run / "progress.csv")
+    assert progress["timesteps"].tolist() == [128, 256, 384]
+    assert progress["mean_return"].notna().any() and progress["level"].isna().all()
+    assert "rollout/success_rate" in (run / "progress.csv").read_text()  # the env's is_success reaches SB3
+    out = plots.plot_training_curves([run], tmp_path / "curves.pdf")
+    assert out.read_bytes().startswith(b"%PDF")
+    assert cli.main(["-q", "curves", str(run), "--out", str(tmp_path / "c.png"), "--dpi", "60"]) == 0
+    with pytest.raises(SystemExit, match="^racebench curves: .*png, pdf, svg"):
+        cli.main(["-q", "curves", str(run), "--out", str(tmp_path / "c.jpg")])
+
+
+def test_curriculum_ids_are_plotted_when_present(tmp_path: Path) -> None:
+    evals = [str(ROOT / "baselines/checkpoints" / name / "eval") for name in ("vision-ppo-S", "state-ppo-S")]
+    assert cli.main(["-q", "plot", *evals, "--out", str(tmp_path), "--dpi", "60"]) == 0
+    assert (tmp_path / "success_by_level.png").is_file()
+    summary = read_summaries(evals)
+    fig_path = plots.plot_success_vs(summary, "levels", tmp_path / "levels.svg")
+    text = fig_path.read_text()
+    assert "curriculum level" in text and "not evaluated" in text  # Circle and J have no level results here
+    with pytest.raises(ValueError, match="no results on the levels variants"):
+        plots.plot_success_vs(read_summaries(RESULTS), "levels", tmp_path / "none.png")
