@@ -10,7 +10,7 @@ import yaml
 from leaderboard_fixtures import ENV, GC_AGENT, SALT, add, evaluate, make_repo, meta, write_hover_onnx, write_records
 
 from racebench import cli
-from racebench.agents import TRUSTED_CHECKPOINTS
+from racebench.agents import BUILTIN_PRIVILEGED, TRUSTED_CHECKPOINTS
 from racebench.evaluation import EVAL_SEED_BASE
 from racebench.leaderboard.entries import (
     DEFAULT_LEADERBOARD,
@@ -147,9 +147,10 @@ def test_every_builtin_reference_and_committed_checkpoint_is_an_entry() -> None:
     accepted = load_config(board)["private_salt_sha256"]
     checkpoints = {e.meta["policy"] for e in entries.values() if e.kind == "sb3"}
     assert checkpoints == {f"baselines/checkpoints/{p}" for p in TRUSTED_CHECKPOINTS.values()}
-    for name in ("planner", "follow", "hover"):
+    for name in ("planner", "planner-fast", "follow", "hover"):
         assert entries[name].meta["policy"] == f"builtin:{name}"
-    assert {n for n, e in entries.items() if e.tier(accepted) == "reference"} == {"planner", "follow"}
+    privileged = {name for name, flag in BUILTIN_PRIVILEGED.items() if flag}
+    assert {n for n, e in entries.items() if e.tier(accepted) == "reference"} == privileged
     for entry in entries.values():
         assert entry.meta["policy_sha256"] == policy_sha256(entry.meta["policy"], ROOT)
         assert entry.records and all(r["policy_sha256"] == entry.meta["policy_sha256"] for r in entry.records)
