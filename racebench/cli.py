@@ -103,6 +103,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         choices=("public", "private"),
         help="public: seeds 1,000,000 + i (default); private: derived from the secret salt in $RACEBENCH_PRIVATE_SALT",
     )
+    _add_backend_options(p_eval)
+    p_eval.add_argument("--task-cpus", type=float, default=1.0, help="CPUs each Ray task reserves (default 1)")
+    p_eval.add_argument(
+        "--task-episodes",
+        type=int,
+        default=None,
+        help="episodes per Ray task (default: --batch if the agent batches, else 1)",
+    )
 
     p_table = sub.add_parser("table", help="the paper's Table II, III or IV from result directories / summary CSVs")
     p_table.add_argument("results", nargs="+", help="result directories or summary.csv files")
@@ -320,6 +328,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def _add_backend_options(parser: argparse.ArgumentParser) -> None:
+    """``--backend`` and ``--address`` of the commands that can run on Ray."""
+    parser.add_argument(
+        "--backend",
+        default="local",
+        choices=("local", "ray"),
+        help="local: processes on this machine (default); ray: Ray tasks (needs pip install -e '.[ray]')",
+    )
+    parser.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster to join: auto (started here by `ray start`) or HOST:PORT; default: a private local "
+        "instance of --workers CPUs",
+    )
+
+
+def _ray_options(args: argparse.Namespace, **options):
+    """The :class:`~racebench.ray_backend.RayOptions` of the command line (``None`` for the local backend)."""
+    from racebench.ray_backend import RayOptions
+
+    return RayOptions(address=args.address, **options) if args.backend == "ray" else None
+
+
 def _summaries(results: Sequence[str], command: str):
     """Summaries recomputed from the records of result directories; a bad path is a one-line error."""
     from racebench.evaluation import read_summaries
@@ -348,6 +379,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             renderer=args.renderer,
             batch=args.batch,
             seed_set=args.seed_set,
+            backend=args.backend,
+            ray_options=_ray_options(args, task_cpus=args.task_cpus, task_episodes=args.task_episodes),
         )
     except (AgentLoadError, ValueError) as exc:
         raise SystemExit(f"racebench evaluate: {exc}") from exc
