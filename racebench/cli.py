@@ -161,6 +161,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="where the networks train (default auto: CUDA when torch sees a GPU); envs always step on CPU",
     )
 
+    p_sweep = sub.add_parser(
+        "sweep", help="a grid of training runs (config x track x seed) plus final evaluations; resumable"
+    )
+    p_sweep.add_argument("sweep", help="sweep file (YAML), e.g. baselines/sweeps/paper-tables.yaml")
+    p_sweep.add_argument("--out", default=None, help="output folder (default: the file's out, or runs/sweeps/<name>)")
+    _add_backend_options(p_sweep)
+    p_sweep.add_argument("--workers", type=int, default=2, help="CPUs of a private local Ray instance (default 2)")
+    p_sweep.add_argument("--max-retries", type=int, default=3, help="Ray re-runs of a run whose worker died")
+
     p_distill = sub.add_parser(
         "distill", help="teacher-student baseline: a depth policy imitates the privileged planner (DAgger)"
     )
@@ -266,6 +275,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(json.dumps(distill(config, out, eval_episodes=args.eval_episodes), indent=2))
     elif args.command == "evaluate":
         return _evaluate(args)
+    elif args.command == "sweep":
+        return _sweep(args)
     elif args.command == "table":
         from racebench.tables import make_table
 
@@ -349,6 +360,34 @@ def _ray_options(args: argparse.Namespace, **options):
     from racebench.ray_backend import RayOptions
 
     return RayOptions(address=args.address, **options) if args.backend == "ray" else None
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    """``racebench sweep``: run the grid, print one line per run; non-zero exit if any run failed."""
+    from racebench.ray_backend import require_ray
+    from racebench.sweep import load_sweep, run_sweep
+
+    try:
+        if args.backend == "ray":
+            require_ray()
+        sweep = load_sweep(args.sweep, args.out)
+        options = _ray_options(args, local_cpus=args.workers, max_retries=args.max_retries)
+        if options is not None:
+            options.validate()
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"racebench sweep: {exc}") from exc
+    print(f"sweep {sweep.name}: {len(sweep.runs)} runs in {sweep.out} ({args.backend} backend)")
+
+    def show(row: dict) -> None:
+        rate = "" if row["success_rate"] is None else f", success rate {row['success_rate']:.2f}"
+        print(f"{row['run']}: {row['status']} ({row['timesteps']} steps{rate})", flush=True)
+
+    rows = run_sweep(sweep, args.backend, options, on_row=show)
+    print(f"wrote {sweep.out / 'sweep.csv'}")
+    failed = [row["run"] for row in rows if row["status"].startswith("failed")]
+    if failed:
+        raise SystemExit(f"racebench sweep: {len(failed)} of {len(rows)} runs failed: {', '.join(failed)}")
+    return 0
 
 
 def _summaries(results: Sequence[str], command: str):
