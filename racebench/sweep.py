@@ -180,8 +180,7 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
     twice = [f for f in folders if folders.count(f) > 1]  # in the sweep's order: the first one is named
     if twice:
         raise ValueError(
-            f"{source}: two runs would share the folder {twice[0]!r}: give the configs distinct names "
-            "(override name)"
+            f"{source}: two runs would share the folder {twice[0]!r}: give the configs distinct names (override name)"
         )
     return Sweep(name, root, runs)
 

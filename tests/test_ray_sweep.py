@@ -138,3 +138,12 @@ def test_a_ray_sweep_finishes_and_is_skipped_when_rerun(ray_cluster, tmp_path: P
     rows = run_sweep(load_sweep(path), backend="ray", ray_options=RayOptions())
     assert [row["status"] for row in rows] == ["skipped", "skipped"]
     assert check_finished(out, RUNS) == stamps
+
+
+def test_the_shipped_paper_sweep_loads() -> None:
+    path = Path(__file__).parents[1] / "baselines" / "sweeps" / "paper-tables.yaml"
+    sweep = load_sweep(path)
+    configs = {"vision-ppo", "state-ppo", "vision-com", "vision-no-gru", "vision-no-avoid", "vision-one-step"}
+    assert len(sweep.runs) == 18 and {run.config.name for run in sweep.runs} == configs
+    assert {run.track for run in sweep.runs} == {"S", "Circle", "J"}
+    assert all(run.steps == 100_000_000 and run.cpus == run.config.num_processes for run in sweep.runs)
