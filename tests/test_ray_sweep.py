@@ -4,7 +4,11 @@ from its own folder, locally and on a local Ray instance of 2 CPUs (tests marked
 from __future__ import annotations
 
 import json
+import os
+import signal
 import textwrap
+import threading
+import time
 from pathlib import Path
 
 import pandas as pd
@@ -138,6 +142,57 @@ def test_a_ray_sweep_finishes_and_is_skipped_when_rerun(ray_cluster, tmp_path: P
     rows = run_sweep(load_sweep(path), backend="ray", ray_options=RayOptions())
     assert [row["status"] for row in rows] == ["skipped", "skipped"]
     assert check_finished(out, RUNS) == stamps
+
+
+def descendants_running(task: str) -> list[int]:
+    """PIDs of this process's descendants whose title is ``ray::<task>``: the Ray workers of the instance this
+    test started, running that task (Ray renames a worker process after the task it runs)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(ppid, []).append(int(stat.parent.name))
+    found, todo = [], list(children.get(os.getpid(), []))
+    while todo:
+        pid = todo.pop()
+        todo += children.get(pid, [])
+        try:
+            if (Path("/proc") / str(pid) / "cmdline").read_bytes().startswith(f"ray::{task}".encode()):
+                found.append(pid)
+        except OSError:
+            continue
+    return found
+
+
+@pytest.mark.ray
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds the Ray worker to kill through /proc")
+def test_a_ray_sweep_run_whose_worker_is_killed_resumes_from_its_checkpoint(ray_cluster, tmp_path: Path) -> None:
+    path = write_sweep(tmp_path, tracks=["S"], steps=2048, eval_episodes=1, checkpoint_every=128)
+    run = tmp_path / "out" / "tiny-S-seed0"
+    rows: list = []
+    sweeping = threading.Thread(
+        target=lambda: rows.extend(run_sweep(load_sweep(path), backend="ray", ray_options=RayOptions(max_retries=2)))
+    )
+    sweeping.start()
+    killed = None
+    deadline = time.time() + 120
+    while killed is None and time.time() < deadline and sweeping.is_alive():
+        if latest_checkpoint(run, "tiny")[1] >= 128:  # mid-run: a checkpoint written, the run not finished
+            workers = descendants_running("run_job")
+            if workers:
+                killed = workers[0]
+                os.kill(killed, signal.SIGKILL)
+        time.sleep(0.02)
+    sweeping.join(timeout=300)
+    assert killed is not None, "the run finished before its worker could be killed: the test tested nothing"
+    assert [row["status"] for row in rows] == ["done"]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["timesteps"] == 2048 and summary["resumed_at"] >= 128  # resumed from a checkpoint, not afresh
+    assert summary["eval"]["n"] == 1 and len(load_records(run / "eval")) == 1
+    progress = pd.read_csv(run / "progress.csv")
+    assert progress["timesteps"].is_unique and progress["timesteps"].iloc[-1] == 2048  # no update logged twice
 
 
 def test_the_shipped_paper_sweep_loads() -> None:
