@@ -168,7 +168,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_sweep.add_argument("--out", default=None, help="output folder (default: the file's out, or runs/sweeps/<name>)")
     _add_backend_options(p_sweep)
     p_sweep.add_argument("--workers", type=int, default=2, help="CPUs of a private local Ray instance (default 2)")
-    p_sweep.add_argument("--max-retries", type=int, default=3, help="Ray re-runs of a run whose worker died")
 
     p_distill = sub.add_parser(
         "distill", help="teacher-student baseline: a depth policy imitates the privileged planner (DAgger)"
@@ -353,13 +352,20 @@ def _add_backend_options(parser: argparse.ArgumentParser) -> None:
         help="Ray cluster to join: auto (started here by `ray start`) or HOST:PORT; default: a private local "
         "instance of --workers CPUs",
     )
+    parser.add_argument(
+        "--max-retries", type=int, default=3, help="times Ray re-runs a task whose worker or node died (default 3)"
+    )
 
 
 def _ray_options(args: argparse.Namespace, **options):
     """The :class:`~racebench.ray_backend.RayOptions` of the command line (``None`` for the local backend)."""
     from racebench.ray_backend import RayOptions
 
-    return RayOptions(address=args.address, **options) if args.backend == "ray" else None
+    if args.backend != "ray":
+        if args.address is not None:
+            raise SystemExit(f"racebench {args.command}: --address needs --backend ray")
+        return None
+    return RayOptions(address=args.address, max_retries=args.max_retries, **options)
 
 
 def _sweep(args: argparse.Namespace) -> int:
@@ -371,7 +377,7 @@ def _sweep(args: argparse.Namespace) -> int:
         if args.backend == "ray":
             require_ray()
         sweep = load_sweep(args.sweep, args.out)
-        options = _ray_options(args, local_cpus=args.workers, max_retries=args.max_retries)
+        options = _ray_options(args, local_cpus=args.workers)
         if options is not None:
             options.validate()
     except (OSError, ValueError) as exc:

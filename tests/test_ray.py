@@ -48,6 +48,10 @@ def test_bad_ray_options_are_named(tmp_path: Path) -> None:
         Evaluator("hover", ["RaceObs-S-Level1-v0"], 1, tmp_path, backend="ray", ray_options=RayOptions(task_episodes=0))
     with pytest.raises(SystemExit, match="Ray task CPUs must be > 0"):
         main(["evaluate", "--agent", "hover", "--out", str(tmp_path), "--backend", "ray", "--task-cpus", "0"])
+    with pytest.raises(SystemExit, match="max_retries must be >= 0"):
+        main(["evaluate", "--agent", "hover", "--out", str(tmp_path), "--backend", "ray", "--max-retries", "-1"])
+    with pytest.raises(SystemExit, match="--address needs --backend ray"):
+        main(["evaluate", "--agent", "hover", "--out", str(tmp_path), "--address", "auto"])
 
 
 @pytest.mark.ray
