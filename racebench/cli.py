@@ -8,6 +8,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 
@@ -357,7 +358,7 @@ def _add_backend_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _ray_options(args: argparse.Namespace, **options):
+def _ray_options(args: argparse.Namespace, **options: Any) -> Any:
     """The :class:`~racebench.ray_backend.RayOptions` of the command line (``None`` for the local backend)."""
     from racebench.ray_backend import RayOptions
 
