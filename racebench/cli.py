@@ -9,6 +9,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 
@@ -117,6 +118,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="public: seeds 1,000,000 + i (default); private: derived from the secret salt in $RACEBENCH_PRIVATE_SALT",
     )
     p_eval.add_argument("--agent-kwargs", default=None, help=AGENT_KWARGS_HELP)
+    _add_backend_options(p_eval)
+    p_eval.add_argument("--task-cpus", type=float, default=1.0, help="CPUs each Ray task reserves (default 1)")
+    p_eval.add_argument(
+        "--task-episodes",
+        type=int,
+        default=None,
+        help="episodes per Ray task (default: --batch if the agent batches, else 1)",
+    )
 
     p_table = sub.add_parser("table", help="the paper's Table II, III or IV from result directories / summary CSVs")
     p_table.add_argument("results", nargs="+", help="result directories or summary.csv files")
@@ -184,6 +193,14 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("auto", "cpu", "cuda"),
         help="where the networks train (default auto: CUDA when torch sees a GPU); envs always step on CPU",
     )
+
+    p_sweep = sub.add_parser(
+        "sweep", help="a grid of training runs (config x track x seed) plus final evaluations; resumable"
+    )
+    p_sweep.add_argument("sweep", help="sweep file (YAML), e.g. baselines/sweeps/paper-tables.yaml")
+    p_sweep.add_argument("--out", default=None, help="output folder (default: the file's out, or runs/sweeps/<name>)")
+    _add_backend_options(p_sweep)
+    p_sweep.add_argument("--workers", type=int, default=2, help="CPUs of a private local Ray instance (default 2)")
 
     p_distill = sub.add_parser(
         "distill", help="teacher-student baseline: a depth policy imitates the privileged planner (DAgger)"
@@ -307,6 +324,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(json.dumps(distill(config, out, eval_episodes=args.eval_episodes), indent=2))
     elif args.command == "evaluate":
         return _evaluate(args)
+    elif args.command == "sweep":
+        return _sweep(args)
     elif args.command == "table":
         from racebench.tables import make_table
 
@@ -405,6 +424,64 @@ def _configure_logging(quiet: bool, verbose: bool) -> None:
     log.propagate = False  # our own handlers; the root logger (and library loggers) stay as they are
 
 
+def _add_backend_options(parser: argparse.ArgumentParser) -> None:
+    """``--backend`` and ``--address`` of the commands that can run on Ray."""
+    parser.add_argument(
+        "--backend",
+        default="local",
+        choices=("local", "ray"),
+        help="local: processes on this machine (default); ray: Ray tasks (needs pip install -e '.[ray]')",
+    )
+    parser.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster to join: auto (started here by `ray start`) or HOST:PORT; default: a private local "
+        "instance of --workers CPUs",
+    )
+    parser.add_argument(
+        "--max-retries", type=int, default=3, help="times Ray re-runs a task whose worker or node died (default 3)"
+    )
+
+
+def _ray_options(args: argparse.Namespace, **options: Any) -> Any:
+    """The :class:`~racebench.ray_backend.RayOptions` of the command line (``None`` for the local backend)."""
+    from racebench.ray_backend import RayOptions
+
+    if args.backend != "ray":
+        if args.address is not None:
+            raise SystemExit(f"racebench {args.command}: --address needs --backend ray")
+        return None
+    return RayOptions(address=args.address, max_retries=args.max_retries, **options)
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    """``racebench sweep``: run the grid, print one line per run; non-zero exit if any run failed."""
+    from racebench.ray_backend import require_ray
+    from racebench.sweep import load_sweep, run_sweep
+
+    try:
+        if args.backend == "ray":
+            require_ray()
+        sweep = load_sweep(args.sweep, args.out)
+        options = _ray_options(args, local_cpus=args.workers)
+        if options is not None:
+            options.validate()
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"racebench sweep: {exc}") from exc
+    print(f"sweep {sweep.name}: {len(sweep.runs)} runs in {sweep.out} ({args.backend} backend)")
+
+    def show(row: dict) -> None:
+        rate = "" if row["success_rate"] is None else f", success rate {row['success_rate']:.2f}"
+        print(f"{row['run']}: {row['status']} ({row['timesteps']} steps{rate})", flush=True)
+
+    rows = run_sweep(sweep, args.backend, options, on_row=show)
+    print(f"wrote {sweep.out / 'sweep.csv'}")
+    failed = [row["run"] for row in rows if row["status"].startswith("failed")]
+    if failed:
+        raise SystemExit(f"racebench sweep: {len(failed)} of {len(rows)} runs failed: {', '.join(failed)}")
+    return 0
+
+
 def _summaries(results: Sequence[str], command: str):
     """Summaries recomputed from the records of result directories; a bad path is a one-line error."""
     from racebench.evaluation import read_summaries
@@ -435,6 +512,8 @@ def _evaluate(args: argparse.Namespace) -> int:
             batch=args.batch,
             seed_set=args.seed_set,
             agent_kwargs=agent_kwargs,
+            backend=args.backend,
+            ray_options=_ray_options(args, task_cpus=args.task_cpus, task_episodes=args.task_episodes),
         )
     except (AgentLoadError, ValueError) as exc:
         raise SystemExit(f"racebench evaluate: {exc}") from exc

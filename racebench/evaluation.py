@@ -23,6 +23,7 @@ summaries from the records too and never read a ``summary.csv`` back.
 from __future__ import annotations
 
 import atexit
+import dataclasses
 import json
 import logging
 import multiprocessing
@@ -44,6 +45,8 @@ from tqdm.auto import tqdm
 
 import racebench
 from racebench.agents import PolicyIdentity, load_agent, policy_identity
+from racebench.ray_backend import BACKENDS, RayOptions, require_ray
+from racebench.ray_backend import run_evaluation as run_on_ray
 from racebench.records import (
     RECORD_FIELDS,
     RECORD_FORMAT,
@@ -286,6 +289,10 @@ class Evaluator:
             ``salt`` or, when not given, the environment variable ``RACEBENCH_PRIVATE_SALT``
             (:mod:`racebench.leaderboard.seeds`); the records store the salt's hash, never the salt.
         agent_kwargs: constructor keyword arguments of a ``module:Class`` agent (part of its policy identity).
+        backend: ``"local"`` (worker processes on this machine) or ``"ray"`` (episodes as Ray tasks,
+            :mod:`racebench.ray_backend`; same records, so resume, summaries and tables are unchanged).
+        ray_options: :class:`~racebench.ray_backend.RayOptions` of the Ray backend (cluster address, CPUs
+            per task, ...); without an address a private local instance of ``workers`` CPUs is started.
     """
 
     def __init__(
@@ -304,6 +311,8 @@ class Evaluator:
         seed_set: str = SEED_SET,
         salt: str | None = None,
         agent_kwargs: dict[str, Any] | None = None,
+        backend: str = "local",
+        ray_options: RayOptions | None = None,
     ) -> None:
         from racebench.env import RENDERERS
         from racebench.leaderboard.seeds import salt_from_env, salt_sha256, seeds_for
@@ -316,6 +325,15 @@ class Evaluator:
             raise ValueError(f"batch must be >= 1, got {batch}")
         if renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        self.backend = backend
+        if backend == "ray":
+            require_ray()  # before any work: a missing extra is a one-line error
+            self.ray_options = ray_options or RayOptions()
+            if self.ray_options.local_cpus is None:
+                self.ray_options = dataclasses.replace(self.ray_options, local_cpus=workers)
+            self.ray_options.validate()
         self.agent_spec = agent_spec
         self.env_ids = resolve_envs(envs)
         self.episodes = episodes
@@ -335,6 +353,7 @@ class Evaluator:
         if getattr(probe, "sha256", self.identity.sha256) != self.identity.sha256:
             raise ValueError(f"{agent_spec!r} changed while it was being loaded")
         self.agent_name = agent_name or probe.name
+        self.probe = probe  # the Ray backend sizes its tasks by whether the agent batches
         self.privileged = self.identity.privileged
         default = default_out_dir(self.agent_name, self.identity, seed_set)
         self.out_dir = Path(out_dir) if out_dir is not None else default
@@ -409,7 +428,9 @@ class Evaluator:
         # Tasks of a few lockstep widths: every worker stays busy, and each record is written as it ends.
         size = max(1, min(2 * self.batch, -(-len(todo) // self.workers)))
         tasks = [todo[i : i + size] for i in range(0, len(todo), size)]
-        if self.workers == 1 or len(tasks) <= 1:
+        if self.backend == "ray":
+            self.done.update(run_on_ray(self, todo, bar.update))
+        elif self.workers == 1 or len(tasks) <= 1:
             with SingleTorchThread():
                 _worker_init(self.agent_spec, self.renderer, self.trust_code, torch_threads(), self.agent_kwargs)
                 try:

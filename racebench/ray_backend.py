@@ -1,0 +1,190 @@
+"""The Ray backend: evaluation episodes (and sweep runs, :mod:`racebench.sweep`) as Ray tasks.
+
+Ray is an optional extra (``pip install -e '.[ray]'``); nothing here imports it before it is asked for, so
+the local multiprocessing backend never pays for it.
+
+An evaluation on Ray is the local evaluation cut into tasks of a few episodes. Each task runs
+:func:`racebench.evaluation._fly` in a Ray worker process with the same :class:`~racebench.evaluation.RecordWriter`
+the local workers use, so every record has the same name and contents as a local run's, and resume,
+summaries and tables do not know which backend wrote them. A task skips the episodes whose valid record is
+already on disk, so a task retried after its worker or node died (Ray's ``max_retries``) re-flies only the
+episodes that had not finished; a record is written once per episode slot (renamed into place), so none is
+duplicated. A task also returns the bytes of the records it wrote: where a worker's node does not share the
+output folder with the driver, the driver writes them (records only; trajectories need a shared folder).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from racebench.records import InvalidRecordError, atomic_write, read_record, validate_record
+
+INSTALL_HINT = "pip install -e '.[ray]'"
+BACKENDS: tuple[str, ...] = ("local", "ray")
+
+
+class RayNotInstalledError(ValueError):
+    """``--backend ray`` without Ray installed (a setup error, like a bad option); the message says how to
+    install it."""
+
+
+def require_ray() -> Any:
+    """Import and return the ``ray`` module, or raise :class:`RayNotInstalledError` saying how to install it."""
+    try:
+        import ray
+    except ImportError as exc:
+        raise RayNotInstalledError(f"the Ray backend needs Ray, which is not installed: {INSTALL_HINT}") from exc
+    return ray
+
+
+@dataclass(frozen=True)
+class RayOptions:
+    """How racebench uses Ray.
+
+    Args:
+        address: cluster to join (``"auto"``: the one ``ray start`` began on this machine; ``"HOST:PORT"``:
+            a head node). ``None`` starts a private local instance of ``local_cpus`` CPUs, shut down afterwards.
+            Ignored when this process has already called ``ray.init``.
+        task_cpus: CPUs each evaluation task reserves (1: one episode stream per core).
+        task_episodes: episodes per evaluation task; ``None``: the lockstep width for agents that batch
+            (SB3, ONNX), else 1 (a lost worker then costs at most one episode).
+        max_retries: times Ray re-runs a task whose worker process or node died.
+        local_cpus: CPUs of the private local instance started when ``address`` is ``None``.
+    """
+
+    address: str | None = None
+    task_cpus: float = 1.0
+    task_episodes: int | None = None
+    max_retries: int = 3
+    local_cpus: int | None = None
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad option."""
+        if self.task_cpus <= 0:
+            raise ValueError(f"Ray task CPUs must be > 0, got {self.task_cpus}")
+        if self.task_episodes is not None and self.task_episodes < 1:
+            raise ValueError(f"episodes per Ray task must be >= 1, got {self.task_episodes}")
+        if self.max_retries < 0:
+            raise ValueError(f"Ray max_retries must be >= 0, got {self.max_retries}")
+        if self.local_cpus is not None and self.local_cpus < 1:
+            raise ValueError(f"CPUs of the local Ray instance must be >= 1, got {self.local_cpus}")
+
+
+@contextmanager
+def connected(options: RayOptions) -> Iterator[Any]:
+    """Context: a connected ``ray`` module; disconnects (and stops a private local instance) on exit only if
+    it connected itself, so a caller's own ``ray.init`` (a test's, a notebook's) is left as it was."""
+    ray = require_ray()
+    if ray.is_initialized():
+        yield ray
+        return
+    if options.address is None:
+        ray.init(num_cpus=options.local_cpus or 1, include_dashboard=False, log_to_driver=False)
+    else:
+        ray.init(address=options.address, log_to_driver=False)
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def wait_all(ray: Any, refs: Sequence[Any], on_done: Callable[[Any, Any], None]) -> None:
+    """Call ``on_done(ref, value)`` for every task as it finishes (in completion order); a task's error is raised."""
+    pending = list(refs)
+    while pending:
+        ready, pending = ray.wait(pending, num_returns=1)
+        for ref in ready:
+            on_done(ref, ray.get(ref))
+
+
+# ------------------------------------------------------------------ evaluation
+
+
+def worker_spec(spec: str) -> str:
+    """``spec`` with a relative policy file made absolute: Ray workers do not share the driver's directory."""
+    target, sep, cls = spec.rpartition(":")
+    if sep and target.endswith(".py") and Path(target).is_file():
+        return f"{Path(target).resolve()}:{cls}"
+    if (spec.endswith(".zip") or spec.endswith(".onnx")) and Path(spec).is_file():
+        return str(Path(spec).resolve())
+    return spec
+
+
+def _fly_task(
+    agent_spec: str,
+    sha256: str,
+    renderer: str,
+    trust_code: bool,
+    jobs: list[tuple[str, int]],
+    writer: Any,
+    width: int,
+    save_trajectories: bool,
+    agent_kwargs: dict[str, Any] | None = None,
+) -> list[tuple[str, bytes]]:
+    """Body of one Ray evaluation task: fly the jobs without a valid record; return (name, record bytes) of all."""
+    from racebench.evaluation import _WORKER, _fly, _worker_init, torch_threads
+
+    records = writer.out_dir / "records"
+    todo = []
+    for env_id, seed in jobs:
+        try:  # finished before this task's worker died: a retry keeps it
+            read_record(records / writer.name(env_id, seed))
+        except InvalidRecordError:
+            todo.append((env_id, seed))
+    key = (agent_spec, sha256, renderer, trust_code)  # sha256 covers the constructor arguments
+    if todo and _WORKER.get("key") != key:  # a Ray worker process runs many tasks: build the agent once
+        _worker_init(agent_spec, renderer, trust_code, torch_threads(), agent_kwargs)
+        if getattr(_WORKER["agent"], "sha256", sha256) != sha256:
+            raise ValueError(f"{agent_spec!r} on this node is not the policy the driver evaluates (sha256 differs)")
+        _WORKER["key"] = key
+    if todo:
+        _fly(todo, writer, width, save_trajectories)
+    return [(writer.name(e, s), (records / writer.name(e, s)).read_bytes()) for e, s in jobs]
+
+
+def run_evaluation(evaluator: Any, todo: list[tuple[str, int]], on_episodes: Callable[[int], None]) -> set[str]:
+    """Fly ``todo`` of a :class:`~racebench.evaluation.Evaluator` as Ray tasks; return the record names written.
+
+    ``on_episodes(n)`` is called as each task's ``n`` episodes finish (the progress bar).
+    """
+    from racebench.rollout import BatchAgent
+
+    options: RayOptions = evaluator.ray_options
+    if not todo:
+        return set()
+    size = options.task_episodes
+    if size is None:
+        batching = evaluator.batch > 1 and isinstance(evaluator.probe, BatchAgent)
+        size = evaluator.batch if batching else 1
+    tasks = [todo[i : i + size] for i in range(0, len(todo), size)]
+    # Absolute paths: a Ray worker's working directory is not the driver's.
+    writer = dataclasses.replace(evaluator.writer, out_dir=Path(evaluator.out_dir).resolve())
+    spec = worker_spec(evaluator.agent_spec)
+    written: set[str] = set()
+    with connected(options) as ray:
+        remote = ray.remote(_fly_task).options(num_cpus=options.task_cpus, max_retries=options.max_retries)
+        refs = {
+            remote.remote(
+                spec, evaluator.identity.sha256, evaluator.renderer, evaluator.trust_code, task, writer,
+                evaluator.batch, evaluator.save_trajectories, evaluator.agent_kwargs,
+            ): len(task)
+            for task in tasks
+        }  # fmt: skip
+
+        def done(ref: Any, records: list[tuple[str, bytes]]) -> None:
+            for name, data in records:
+                path = writer.out_dir / "records" / name
+                if not path.exists():  # the worker's node does not share the output folder
+                    validate_record(json.loads(data), name)
+                    atomic_write(path, data)
+                written.add(name)
+            on_episodes(refs[ref])
+
+        wait_all(ray, list(refs), done)
+    return written

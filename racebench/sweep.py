@@ -1,0 +1,306 @@
+"""``racebench sweep``: a grid of training runs (config × track × training seed) plus their final evaluations.
+
+A sweep file (YAML, loaded with ``yaml.safe_load``; ``baselines/sweeps/paper-tables.yaml`` is annotated)::
+
+    name: tiny                      # default: the file's stem
+    out: runs/sweeps/tiny           # default: runs/sweeps/<name>
+    configs:                        # built-in baseline names or YAML files (relative to the sweep file)
+      - state-ppo
+      - {config: vision-ppo, overrides: {n_envs: 32}}   # overrides of this config only
+    tracks: [S, J]
+    seeds: [0, 1]                   # training seeds (below the evaluation seeds)
+    steps: 200000                   # environment steps per run
+    overrides: {num_processes: 1}   # applied to every config (before a config's own)
+    eval_episodes: 10               # final evaluation of each run on RaceObs-<track>-v0 (0: none)
+    checkpoint_every: 50000         # steps between checkpoints, the points a killed run resumes from
+    device: auto                    # where the networks train (racebench train --device)
+    cpus_per_run: null              # Ray: CPUs a run reserves (default: its config's num_processes)
+    gpus_per_run: 0                 # Ray: GPUs a run reserves
+
+Each run is :func:`racebench.training.train.train` in its own folder ``<out>/<config name>-<track>-seed<seed>``,
+resumable through that folder alone: ``summary.json`` with its ``eval`` (or ``eval_episodes: 0``) means
+finished, and the run is skipped; otherwise training continues from the newest checkpoint under
+``checkpoints/`` (or starts afresh), then the final checkpoint is evaluated into ``eval/`` with the
+resumable :class:`~racebench.evaluation.Evaluator` (labelled ``<config name>-seed<seed>``, so
+``racebench table <out>/*/eval`` puts one row per config and seed). There is no second checkpoint mechanism:
+a run killed anywhere, or retried by Ray after its worker or node died, picks up from these files.
+
+The local backend runs the runs one after another in this process; the Ray backend makes each run a Ray
+task reserving the CPUs (and GPUs) its config needs, so a cluster runs as many side by side as fit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import re
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from racebench.ray_backend import RayOptions
+from racebench.records import atomic_write
+
+SWEEP_KEYS: tuple[str, ...] = (
+    "name", "out", "configs", "tracks", "seeds", "steps", "overrides", "eval_episodes", "checkpoint_every",
+    "device", "cpus_per_run", "gpus_per_run",
+)  # fmt: skip
+logger = logging.getLogger("racebench")
+_CHECKPOINT = re.compile(r"^(?P<prefix>.+)_(?P<steps>\d+)_steps\.zip$")
+
+
+@dataclass(frozen=True)
+class SweepRun:
+    """One run of a sweep: everything its job needs, picklable (it travels to a Ray worker)."""
+
+    config: Any  # racebench.training.train.TrainConfig (not imported here: it pulls in torch)
+    track: str
+    seed: int
+    steps: int
+    out: Path
+    eval_episodes: int
+    checkpoint_every: int
+    device: str
+    cpus: float
+    gpus: float
+
+    @property
+    def label(self) -> str:
+        """The run's folder name and its agent label's stem: ``<config name>-<track>-seed<seed>``."""
+        return self.out.name
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """A loaded, validated sweep file: its output folder and its runs."""
+
+    name: str
+    out: Path
+    runs: list[SweepRun]
+
+
+def _load_config(entry: Any, base: Path, overrides: dict[str, Any], source: str) -> Any:
+    from racebench.training.train import BASELINES, TrainConfig
+
+    if isinstance(entry, str):
+        entry = {"config": entry}
+    if not isinstance(entry, dict) or set(entry) - {"config", "overrides"} or "config" not in entry:
+        raise ValueError(f"{source}: each configs entry is a name/file or {{config: ..., overrides: {{...}}}}")
+    name = str(entry["config"])
+    path = name if name in BASELINES or Path(name).is_absolute() else str(base / name)
+    config = TrainConfig.from_yaml(path)
+    own = entry.get("overrides") or {}
+    if not isinstance(own, dict):
+        raise ValueError(f"{source}: overrides of {name!r} must be a mapping")
+    changes = {**overrides, **own}
+    known = {f.name for f in dataclasses.fields(config)}
+    unknown = sorted(set(changes) - known)
+    if unknown:
+        raise ValueError(f"{source}: override {unknown[0]!r} of {name!r} is not a config key")
+    for key in ("start_spread", "learning_rate", "net_arch"):
+        if key in changes:
+            changes[key] = tuple(changes[key])
+    config = dataclasses.replace(config, **changes)
+    if "num_processes" in changes and "update_threads" not in changes:
+        config.update_threads = config.num_processes  # as `racebench train --num-processes` does
+    config.validate(f"{source}: {name} with its overrides")
+    return config
+
+
+def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
+    """Load and validate a sweep file (see the module docstring); ``out`` replaces its output folder.
+
+    Raises ``ValueError`` (or ``OSError``) naming the first problem, before any run starts.
+    """
+    from racebench.evaluation import EVAL_SEED_BASE
+    from racebench.track import BUILTIN_TRACKS
+    from racebench.training.train import DEVICES
+
+    path = Path(path)
+    data = yaml.safe_load(path.read_text())
+    source = str(path)
+    if not isinstance(data, dict):
+        raise ValueError(f"{source}: expected a mapping at the top level")
+    unknown = sorted(set(data) - set(SWEEP_KEYS))
+    if unknown:
+        raise ValueError(f"{source}: unknown key {unknown[0]!r} (known: {sorted(SWEEP_KEYS)})")
+    for key in ("configs", "tracks", "seeds", "steps"):
+        if key not in data:
+            raise ValueError(f"{source}: missing key {key!r}")
+    for key in ("configs", "tracks", "seeds"):
+        if not isinstance(data[key], list) or not data[key]:
+            raise ValueError(f"{source}: {key} must be a non-empty list")
+    bad_tracks = [t for t in data["tracks"] if t not in BUILTIN_TRACKS]
+    if bad_tracks:
+        raise ValueError(f"{source}: track {bad_tracks[0]!r} is not one of {BUILTIN_TRACKS}")
+    if not all(isinstance(s, int) and 0 <= s < EVAL_SEED_BASE for s in data["seeds"]):
+        raise ValueError(f"{source}: seeds must be integers in [0, {EVAL_SEED_BASE}) (evaluation uses the rest)")
+    numbers = {"steps": 1, "eval_episodes": 0, "checkpoint_every": 1}
+    for key, low in numbers.items():
+        if key in data and not (isinstance(data[key], int) and data[key] >= low):
+            raise ValueError(f"{source}: {key} must be an integer >= {low}")
+    device = data.get("device", "auto")
+    if device not in DEVICES:
+        raise ValueError(f"{source}: device must be one of {DEVICES}")
+    for key in ("cpus_per_run", "gpus_per_run"):
+        value = data.get(key)
+        if value is not None and not (isinstance(value, int | float) and value >= 0):
+            raise ValueError(f"{source}: {key} must be a number >= 0")
+    overrides = data.get("overrides") or {}
+    if not isinstance(overrides, dict):
+        raise ValueError(f"{source}: overrides must be a mapping")
+    name = str(data.get("name", path.stem))
+    root = Path(out or data.get("out") or Path("runs") / "sweeps" / name).resolve()  # Ray workers: absolute
+    configs = [_load_config(entry, path.parent, overrides, source) for entry in data["configs"]]
+    runs = []
+    for config in configs:
+        for track in data["tracks"]:
+            for seed in data["seeds"]:
+                cpus = data.get("cpus_per_run")
+                runs.append(
+                    SweepRun(
+                        config=config,
+                        track=track,
+                        seed=seed,
+                        steps=data["steps"],
+                        out=root / f"{config.name}-{track}-seed{seed}",
+                        eval_episodes=data.get("eval_episodes", 10),
+                        checkpoint_every=data.get("checkpoint_every", 50_000),
+                        device=device,
+                        cpus=float(config.num_processes if cpus is None else cpus),
+                        gpus=float(data.get("gpus_per_run") or 0),
+                    )  # fmt: skip
+                )
+    folders = [run.out.name for run in runs]
+    twice = [f for f in folders if folders.count(f) > 1]  # in the sweep's order: the first one is named
+    if twice:
+        raise ValueError(
+            f"{source}: two runs would share the folder {twice[0]!r}: give the configs distinct names (override name)"
+        )
+    return Sweep(name, root, runs)
+
+
+def latest_checkpoint(run_dir: Path, prefix: str) -> tuple[Path | None, int]:
+    """The newest periodic checkpoint ``checkpoints/<prefix>_<n>_steps.zip`` of a run folder and its ``n``."""
+    best: tuple[Path | None, int] = (None, 0)
+    for path in (run_dir / "checkpoints").glob(f"{prefix}_*_steps.zip"):
+        match = _CHECKPOINT.match(path.name)
+        if match and match["prefix"] == prefix and int(match["steps"]) >= best[1]:
+            best = (path, int(match["steps"]))
+    return best
+
+
+def is_finished(run: SweepRun) -> bool:
+    """Whether the run's ``summary.json`` says it trained and (if asked) evaluated."""
+    path = run.out / "summary.json"
+    if not path.exists():
+        return False
+    return run.eval_episodes == 0 or "eval" in json.loads(path.read_text())
+
+
+def run_job(run: SweepRun) -> dict[str, Any]:
+    """Train (or resume) one run and evaluate its final checkpoint; skip it if already finished.
+
+    Returns a row of the sweep's table: run, config, track, seed, status (``skipped`` / ``done``),
+    timesteps, success rate.
+    """
+    from racebench.evaluation import Evaluator
+    from racebench.training.train import _plain, train
+
+    row = {"run": run.label, "config": run.config.name, "track": run.track, "seed": run.seed}
+    summary_path = run.out / "summary.json"
+    if is_finished(run):
+        return {**row, **_outcome(json.loads(summary_path.read_text())), "status": "skipped"}
+    if not summary_path.exists():  # training not finished (train writes summary.json last)
+        checkpoint, done = latest_checkpoint(run.out, run.config.name)
+        train(
+            run.config, run.track, max(run.steps - done, 0), run.seed, run.out, resume=checkpoint,
+            checkpoint_every=run.checkpoint_every, eval_episodes=0, device=run.device,
+        )  # fmt: skip
+    summary = json.loads(summary_path.read_text())
+    if run.eval_episodes > 0:
+        # Evaluated apart from train() so a run killed while evaluating resumes its evaluation, not its training.
+        evaluator = Evaluator(  # this run's own checkpoint, written by racebench: trusted
+            summary["checkpoint"], [f"RaceObs-{run.track}-v0"], episodes=run.eval_episodes, out_dir=run.out / "eval",
+            agent_name=f"{run.config.name}-seed{run.seed}", trust_code=True,
+        )  # fmt: skip
+        result = evaluator.run(progress=False).iloc[0]
+        summary["eval"] = {k: _plain(result[k]) for k in ("n", "successes", "success_rate", "lap_time_mean")}
+        atomic_write(summary_path, json.dumps(summary, indent=2))
+    return {**row, **_outcome(summary), "status": "done"}
+
+
+def _outcome(summary: dict[str, Any]) -> dict[str, Any]:
+    evaluation = summary.get("eval") or {}
+    return {"timesteps": summary.get("timesteps"), "success_rate": evaluation.get("success_rate")}
+
+
+def _failed(run: SweepRun, exc: BaseException) -> dict[str, Any]:
+    last = (str(exc).strip().splitlines() or [type(exc).__name__])[-1]
+    return {"run": run.label, "config": run.config.name, "track": run.track, "seed": run.seed,
+            "timesteps": None, "success_rate": None, "status": f"failed: {last}"}  # fmt: skip
+
+
+def run_sweep(
+    sweep: Sweep,
+    backend: str = "local",
+    ray_options: RayOptions | None = None,
+    on_row: Callable[[dict[str, Any]], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Run every unfinished run of ``sweep``; write ``<out>/sweep.csv``; return its rows (in the sweep's order).
+
+    A failing run is recorded as ``failed: <reason>`` and the others go on. ``on_row`` is called as each
+    run ends. On Ray each run is a task reserving ``cpus``/``gpus``; Ray re-runs a task whose worker or
+    node died (``ray_options.max_retries``), which resumes from the run's folder.
+    """
+    import pandas as pd
+
+    rows: dict[str, dict[str, Any]] = {}
+
+    def finish(run: SweepRun, row: dict[str, Any]) -> None:
+        rows[run.label] = row
+        if on_row is not None:
+            on_row(row)
+
+    if backend == "local":
+        for run in sweep.runs:
+            try:
+                finish(run, run_job(run))
+            except Exception as exc:  # noqa: BLE001 - one failing run must not stop the sweep
+                traceback.print_exc()
+                finish(run, _failed(run, exc))
+    elif backend == "ray":
+        from racebench.ray_backend import connected
+
+        options = ray_options or RayOptions()
+        options.validate()
+        with connected(options) as ray:
+            largest = max((n["Resources"].get("CPU", 0) for n in ray.nodes() if n["Alive"]), default=0)
+            for run in sweep.runs:
+                if run.cpus > largest:  # Ray would wait for such a node for ever (unless an autoscaler adds one)
+                    logger.warning("racebench sweep: %s reserves %g CPUs, more than any node has (%g)",
+                                   run.label, run.cpus, largest)  # fmt: skip
+            job = ray.remote(run_job)
+            refs = {
+                job.options(num_cpus=run.cpus, num_gpus=run.gpus, max_retries=options.max_retries).remote(run): run
+                for run in sweep.runs
+            }
+            pending = list(refs)
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                for ref in ready:
+                    try:
+                        finish(refs[ref], ray.get(ref))
+                    except Exception as exc:  # noqa: BLE001 - a failed run (after Ray's retries) is reported
+                        finish(refs[ref], _failed(refs[ref], exc))
+    else:
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    ordered = [rows[run.label] for run in sweep.runs]
+    sweep.out.mkdir(parents=True, exist_ok=True)
+    atomic_write(sweep.out / "sweep.csv", pd.DataFrame(ordered).to_csv(index=False))
+    return ordered

@@ -1,0 +1,204 @@
+"""``racebench sweep``: a two-run grid of tiny configs finishes, is skipped when re-run and resumes a killed run
+from its own folder, locally and on a local Ray instance of 2 CPUs (tests marked ``ray``, run on their own)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from racebench.cli import main
+from racebench.evaluation import load_records
+from racebench.ray_backend import RayOptions
+from racebench.sweep import latest_checkpoint, load_sweep, run_sweep
+
+# State observations, 2 envs in this process, 128-step updates: a run of 256 steps takes seconds.
+TINY = textwrap.dedent(
+    """
+    name: tiny
+    obs_mode: state
+    recurrent: false
+    vec_env: dummy
+    n_envs: 2
+    num_processes: 1
+    update_threads: 1
+    n_steps: 64
+    batch_size: 64
+    n_epochs: 1
+    window: 4
+    net_arch: [16]
+    gru_hidden: 16
+    """
+)
+
+
+def write_sweep(tmp_path: Path, **changes) -> Path:
+    """A two-run sweep (tiny config × tracks S, J × seed 0) under ``tmp_path``."""
+    (tmp_path / "tiny.yaml").write_text(TINY)
+    sweep = {
+        "name": "two", "out": str(tmp_path / "out"), "configs": ["tiny.yaml"], "tracks": ["S", "J"], "seeds": [0],
+        "steps": 256, "eval_episodes": 1, "checkpoint_every": 128, **changes,
+    }  # fmt: skip
+    path = tmp_path / "two.yaml"
+    path.write_text(json.dumps(sweep))  # JSON is YAML
+    return path
+
+
+def check_finished(out: Path, runs: list[str]) -> dict[str, float]:
+    """Every run folder holds its checkpoint, an evaluated summary and one valid record; return mtimes."""
+    stamps = {}
+    for run in runs:
+        summary = json.loads((out / run / "summary.json").read_text())
+        assert summary["timesteps"] == 256 and summary["eval"]["n"] == 1, run
+        assert Path(summary["checkpoint"]).is_file()
+        records = load_records(out / run / "eval")
+        assert len(records) == 1 and records["agent"].iloc[0] == "tiny-seed0"
+        stamps[run] = (out / run / "summary.json").stat().st_mtime_ns
+    table = pd.read_csv(out / "sweep.csv")
+    assert table["run"].tolist() == runs
+    return stamps
+
+
+RUNS = ["tiny-S-seed0", "tiny-J-seed0"]
+
+
+def test_bad_sweep_files_are_named(tmp_path: Path) -> None:
+    for changes, message in [
+        ({"tracks": ["X"]}, "track 'X' is not one of"),
+        ({"seeds": [1_000_000]}, "seeds must be integers in"),
+        ({"overrides": {"n_env": 3}}, "override 'n_env' of 'tiny.yaml' is not a config key"),
+        ({"stepz": 3}, "unknown key 'stepz'"),
+        ({"configs": ["tiny.yaml", "tiny.yaml"]}, "two runs would share the folder 'tiny-S-seed0'"),
+        ({"overrides": {"batch_size": 100}}, "multiple of batch_size"),
+    ]:
+        with pytest.raises(SystemExit, match=message) as exit_info:
+            main(["sweep", str(write_sweep(tmp_path, **changes))])
+        assert "\n" not in str(exit_info.value.code)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_local_sweep_finishes_is_skipped_when_rerun_and_resumes_a_killed_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    path = write_sweep(tmp_path)
+    out = tmp_path / "out"
+    assert main(["sweep", str(path)]) == 0
+    stamps = check_finished(out, RUNS)
+    assert main(["sweep", str(path)]) == 0
+    assert "tiny-S-seed0: skipped" in capsys.readouterr().out
+    assert check_finished(out, RUNS) == stamps  # nothing re-run, nothing rewritten
+    assert set(pd.read_csv(out / "sweep.csv")["status"]) == {"skipped"}
+
+    # Killed in training after its first checkpoint: no summary, final model, later checkpoints or evaluation
+    # (train writes summary.json last, the evaluation starts after it). It resumes from that checkpoint.
+    import shutil
+
+    run = out / "tiny-J-seed0"
+    for name in ("summary.json", "tiny-J.zip"):
+        (run / name).unlink()
+    for late in (run / "checkpoints").glob("tiny*_256_steps.*"):
+        late.unlink()
+    shutil.rmtree(run / "eval")
+    assert latest_checkpoint(run, "tiny")[1] == 128
+    # Killed while evaluating: summary.json without its eval. Only the evaluation is run again.
+    trained = out / "tiny-S-seed0"
+    summary = json.loads((trained / "summary.json").read_text())
+    del summary["eval"]
+    (trained / "summary.json").write_text(json.dumps(summary))
+    shutil.rmtree(trained / "eval")
+    model_stamp = (trained / "tiny-S.zip").stat().st_mtime_ns
+    rows = run_sweep(load_sweep(path))
+    assert [row["status"] for row in rows] == ["done", "done"]
+    assert (trained / "tiny-S.zip").stat().st_mtime_ns == model_stamp, "a trained run must not train again"
+    assert json.loads((run / "summary.json").read_text())["resumed_at"] == 128
+    check_finished(out, RUNS)
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    """A local Ray instance of 2 CPUs for this module's Ray tests, shut down after them."""
+    ray = pytest.importorskip("ray")
+    if ray.is_initialized():
+        ray.shutdown()
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.mark.ray
+def test_a_ray_sweep_finishes_and_is_skipped_when_rerun(ray_cluster, tmp_path: Path) -> None:
+    path = write_sweep(tmp_path)
+    out = tmp_path / "out"
+    rows = run_sweep(load_sweep(path), backend="ray", ray_options=RayOptions())
+    assert [row["status"] for row in rows] == ["done", "done"]
+    stamps = check_finished(out, RUNS)
+    rows = run_sweep(load_sweep(path), backend="ray", ray_options=RayOptions())
+    assert [row["status"] for row in rows] == ["skipped", "skipped"]
+    assert check_finished(out, RUNS) == stamps
+
+
+def descendants_running(task: str) -> list[int]:
+    """PIDs of this process's descendants whose title is ``ray::<task>``: the Ray workers of the instance this
+    test started, running that task (Ray renames a worker process after the task it runs)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(ppid, []).append(int(stat.parent.name))
+    found, todo = [], list(children.get(os.getpid(), []))
+    while todo:
+        pid = todo.pop()
+        todo += children.get(pid, [])
+        try:
+            if (Path("/proc") / str(pid) / "cmdline").read_bytes().startswith(f"ray::{task}".encode()):
+                found.append(pid)
+        except OSError:
+            continue
+    return found
+
+
+@pytest.mark.ray
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds the Ray worker to kill through /proc")
+def test_a_ray_sweep_run_whose_worker_is_killed_resumes_from_its_checkpoint(ray_cluster, tmp_path: Path) -> None:
+    path = write_sweep(tmp_path, tracks=["S"], steps=2048, eval_episodes=1, checkpoint_every=128)
+    run = tmp_path / "out" / "tiny-S-seed0"
+    rows: list = []
+    sweeping = threading.Thread(
+        target=lambda: rows.extend(run_sweep(load_sweep(path), backend="ray", ray_options=RayOptions(max_retries=2)))
+    )
+    sweeping.start()
+    killed = None
+    deadline = time.time() + 120
+    while killed is None and time.time() < deadline and sweeping.is_alive():
+        if latest_checkpoint(run, "tiny")[1] >= 128:  # mid-run: a checkpoint written, the run not finished
+            workers = descendants_running("run_job")
+            if workers:
+                killed = workers[0]
+                os.kill(killed, signal.SIGKILL)
+        time.sleep(0.02)
+    sweeping.join(timeout=300)
+    assert killed is not None, "the run finished before its worker could be killed: the test tested nothing"
+    assert [row["status"] for row in rows] == ["done"]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["timesteps"] == 2048 and summary["resumed_at"] >= 128  # resumed from a checkpoint, not afresh
+    assert summary["eval"]["n"] == 1 and len(load_records(run / "eval")) == 1
+    progress = pd.read_csv(run / "progress.csv")
+    assert progress["timesteps"].is_unique and progress["timesteps"].iloc[-1] == 2048  # no update logged twice
+
+
+def test_the_shipped_paper_sweep_loads() -> None:
+    path = Path(__file__).parents[1] / "baselines" / "sweeps" / "paper-tables.yaml"
+    sweep = load_sweep(path)
+    configs = {"vision-ppo", "state-ppo", "vision-com", "vision-no-gru", "vision-no-avoid", "vision-one-step"}
+    assert len(sweep.runs) == 18 and {run.config.name for run in sweep.runs} == configs
+    assert {run.track for run in sweep.runs} == {"S", "Circle", "J"}
+    assert all(run.steps == 100_000_000 and run.cpus == run.config.num_processes for run in sweep.runs)
