@@ -8,11 +8,21 @@ from collections.abc import Iterator
 import pytest
 
 
-@pytest.fixture(autouse=True)
-def _restore_racebench_logger() -> Iterator[None]:
-    """Undo what ``racebench.cli.main`` does to the ``racebench`` logger (its own handlers, no propagation),
-    so a CLI test run earlier in the same worker cannot hide later tests' warnings from ``caplog``."""
+def _pristine_racebench_logger() -> None:
     logger = logging.getLogger("racebench")
-    saved = (logger.handlers[:], logger.level, logger.propagate)
+    logger.handlers[:] = []
+    logger.setLevel(logging.NOTSET)
+    logger.propagate = True
+
+
+@pytest.fixture(autouse=True)
+def _reset_racebench_logger() -> Iterator[None]:
+    """Give every test the library's own ``racebench`` logger (no handlers, propagating to the root).
+
+    ``racebench.cli.main`` installs its handlers and stops propagation; a CLI call made earlier in the same
+    worker, even from a module-scoped fixture set up before this one, would otherwise hide later tests'
+    warnings from ``caplog``.
+    """
+    _pristine_racebench_logger()
     yield
-    logger.handlers[:], logger.level, logger.propagate = saved[0], saved[1], saved[2]
+    _pristine_racebench_logger()
