@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from racebench.control import GateFollower, acceleration_to_ctbr
-from racebench.obstacles import find_corridor
+from racebench.obstacles import _SEGMENT_STEP, _FreeSpace, find_corridor
 from racebench.quadrotor import QuadrotorParams
 from racebench.reward import wrap_angle
 
@@ -169,33 +169,25 @@ class PlannerAgent:
 
 
 # --------------------------------------------------------------------------- fast expert
+def _free_space(scene, radius: float = 0.0) -> _FreeSpace:
+    """The corridor search's clearance queries for ``scene`` (the whole arena as its volume)."""
+    lo, hi = np.asarray(scene.arena_low, dtype=float), np.asarray(scene.arena_high, dtype=float)
+    return _FreeSpace(scene, radius, _SEGMENT_STEP, lo, hi)
+
+
 def scene_clearance(scene, points: np.ndarray) -> np.ndarray:
     """Distance from points ``(M, 3)`` to the nearest gate bar, obstacle, the ground or an arena wall."""
-    lo, hi = np.asarray(scene.arena_low, dtype=float), np.asarray(scene.arena_high, dtype=float)
-    walls = np.minimum((points - lo).min(axis=-1), (hi - points).min(axis=-1))
-    return np.minimum(scene.distance(points), walls)
-
-
-def _segments_clear(scene, a: np.ndarray, b: np.ndarray, radius: float, step: float = 0.05) -> np.ndarray:
-    """For segments ``a[k] → b[k]``: whether every point is ``radius`` clear (samples ``step`` apart with
-    clearance ``≥ radius + step/2`` prove it: clearance is 1-Lipschitz)."""
-    lengths = np.linalg.norm(b - a, axis=1)
-    counts = np.maximum(np.ceil(lengths / step).astype(int) + 1, 2)
-    owner = np.repeat(np.arange(len(a)), counts)
-    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    t = (np.arange(len(owner)) - first[owner]) / (counts[owner] - 1)
-    samples = a[owner] + t[:, None] * (b - a)[owner]
-    ok = scene_clearance(scene, samples) >= radius + (lengths / (counts - 1))[owner] / 2.0
-    return np.logical_and.reduceat(ok, first)
+    return _free_space(scene).clearance(points)
 
 
 def pull_taut(scene, polyline: np.ndarray, radius: float) -> np.ndarray:
     """String-pulling: from each kept vertex jump to the farthest later vertex joined by a ``radius``-clear
     straight segment. The ends stay; the result is no longer and every new segment is proven clear."""
+    space = _free_space(scene, radius)
     kept, i = [polyline[0]], 0
     while i < len(polyline) - 1:
         later = np.arange(i + 1, len(polyline))
-        clear = _segments_clear(scene, np.repeat(polyline[i : i + 1], len(later), axis=0), polyline[later], radius)
+        clear = space.segments_clear([(polyline[i], polyline[j]) for j in later])
         clear[0] = True  # the corridor's own segment is clear by construction
         i = int(later[np.flatnonzero(clear)[-1]])
         kept.append(polyline[i])
@@ -265,17 +257,16 @@ def relax(
             after, middle = both[: len(target)], both[len(target) :]
             ok = (after >= floor) | (after >= np.minimum(clearance, floor))  # below the floor: no worse
             moved = np.where(ok[:, None], target, points)
-            for attempt in range(len(points)):  # undo moves until every segment's midpoint of the result is clear
-                if attempt:  # the first pass reuses the midpoints of the all-moved path where both ends moved
-                    middle = scene_clearance(scene, 0.5 * (moved[:-1] + moved[1:]))
-                elif not ok.all():
-                    middle = scene_clearance(scene, 0.5 * (moved[:-1] + moved[1:]))
+            if not ok.all():  # the midpoints above were of the all-moved path
+                middle = scene_clearance(scene, 0.5 * (moved[:-1] + moved[1:]))
+            while True:  # undo moves until every segment's midpoint of the result is clear
                 bad = np.flatnonzero(middle < min_clearance - 1e-9)
                 bad = bad[ok[bad] | ok[bad + 1]]  # segments no move touched stay as they were
                 if not len(bad):
                     break
-                ok[bad] = ok[bad + 1] = False
+                ok[bad] = ok[bad + 1] = False  # each pass undoes at least one move: the loop ends
                 moved = np.where(ok[:, None], target, points)
+                middle = scene_clearance(scene, 0.5 * (moved[:-1] + moved[1:]))
             points = moved
     return points
 

@@ -26,3 +26,14 @@ def _reset_racebench_logger() -> Iterator[None]:
     _pristine_racebench_logger()
     yield
     _pristine_racebench_logger()
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    """A local Ray instance of 2 CPUs for this module's tests, shut down after them."""
+    ray = pytest.importorskip("ray")
+    if ray.is_initialized():
+        ray.shutdown()
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()

@@ -19,17 +19,6 @@ from racebench.ray_backend import INSTALL_HINT, RayOptions
 from racebench.records import read_record
 
 
-@pytest.fixture(scope="module")
-def ray_cluster():
-    """A local Ray instance of 2 CPUs for this module's tests, shut down after them."""
-    ray = pytest.importorskip("ray")
-    if ray.is_initialized():
-        ray.shutdown()
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
-
-
 def test_ray_backend_without_ray_says_how_to_install_it(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now raises ImportError, as when not installed
     argv = ["evaluate", "--agent", "hover", "--envs", "RaceObs-S-Level1-v0", "--episodes", "1"]

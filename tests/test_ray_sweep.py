@@ -121,17 +121,6 @@ def test_a_local_sweep_finishes_is_skipped_when_rerun_and_resumes_a_killed_run(
     check_finished(out, RUNS)
 
 
-@pytest.fixture(scope="module")
-def ray_cluster():
-    """A local Ray instance of 2 CPUs for this module's Ray tests, shut down after them."""
-    ray = pytest.importorskip("ray")
-    if ray.is_initialized():
-        ray.shutdown()
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
-
-
 @pytest.mark.ray
 def test_a_ray_sweep_finishes_and_is_skipped_when_rerun(ray_cluster, tmp_path: Path) -> None:
     path = write_sweep(tmp_path)
