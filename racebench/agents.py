@@ -345,6 +345,8 @@ class SB3Agent:
             data, _, _ = load_from_zip_file(io.BytesIO(raw), device=device, print_system_info=False)
         except Exception as exc:  # noqa: BLE001 - SB3 raises many kinds on a damaged archive
             raise AgentLoadError(f"SB3 checkpoint {str(path)!r} could not be read: {exc}") from exc
+        if data is None:  # e.g. a zip cut short after a nested torch archive, which then opens as that one
+            raise AgentLoadError(f"SB3 checkpoint {str(path)!r} holds no model data: truncated or not an SB3 save")
         policy_name = getattr(data.get("policy_class"), "__name__", "")
         candidates: list[Any] = []
         if "Recurrent" in policy_name:

@@ -297,6 +297,7 @@ def run_sweep(
                     try:
                         finish(refs[ref], ray.get(ref))
                     except Exception as exc:  # noqa: BLE001 - a failed run (after Ray's retries) is reported
+                        logger.error("racebench sweep: %s failed:\n%s", refs[ref].label, exc)  # the remote traceback
                         finish(refs[ref], _failed(refs[ref], exc))
     else:
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")

@@ -14,7 +14,7 @@ from sb3_contrib.common.recurrent.policies import RecurrentMultiInputActorCritic
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-from racebench.agents import SB3Agent
+from racebench.agents import AgentLoadError, SB3Agent
 from racebench.evaluation import EVAL_SEED_BASE
 from racebench.registration import CURRICULUM
 from racebench.sb3 import RaceSB3VecEnv
@@ -26,6 +26,7 @@ from racebench.training.train import (
     ThreadsCallback,
     TrainConfig,
     _restore_reward_stats,
+    _save_atomically,
     make_envs,
     make_model,
     resume_curriculum,
@@ -392,6 +393,37 @@ def test_resume_after_a_killed_run(tmp_path: Path) -> None:
     assert list(progress["timesteps"]) == [at // 2, at, resumed["timesteps"]]
     assert (progress["level"] == 1).all() and progress["wall_s"].is_monotonic_increasing
     assert progress["episodes"].is_monotonic_increasing
+    assert not list((tmp_path / "checkpoints").glob("*partial*")), "a finished save left its partial file behind"
+
+
+def test_a_checkpoint_killed_mid_save_never_appears_under_its_name(tmp_path: Path) -> None:
+    """The save goes to a sibling file: a kill inside it leaves no ``*_steps.zip`` a resume could pick up."""
+    final = tmp_path / "run_128_steps.zip"
+
+    def killed_while_writing(path: str) -> None:
+        Path(path).write_bytes(b"PK\x03\x04 half an archive")
+        raise KeyboardInterrupt  # stands in for SIGKILL: the save never returns
+
+    with pytest.raises(KeyboardInterrupt):
+        _save_atomically(final, killed_while_writing)
+    assert not final.exists() and not list(tmp_path.glob("*_steps.zip"))
+    _save_atomically(final, lambda path: Path(path).write_bytes(b"whole"))
+    assert final.read_bytes() == b"whole" and [p.name for p in tmp_path.iterdir()] == [final.name]
+
+
+def test_a_truncated_checkpoint_is_a_named_load_error(tmp_path: Path) -> None:
+    """An SB3 zip cut right after a nested torch archive opens as that inner archive: refuse it by name."""
+    config = small(TrainConfig.from_yaml(BASELINES[0].parent / "state-ppo.yaml"))
+    env = make_envs(config, "S", 0)
+    path = tmp_path / "whole.zip"
+    make_model(config, env, seed=0, tensorboard=None).save(path)
+    env.close()
+    raw = path.read_bytes()
+    inner_end = raw.index(b"PK\x05\x06") + 22  # the end record of the first nested .pth archive
+    cut = tmp_path / "cut_128_steps.zip"
+    cut.write_bytes(raw[:inner_end])
+    with pytest.raises(AgentLoadError, match="cut_128_steps.zip.*no model data"):
+        SB3Agent._load(cut, "cpu")
 
 
 def test_resume_seed_is_new_and_below_the_evaluation_seeds() -> None:

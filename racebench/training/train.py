@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import time
 import warnings
 from collections import deque
@@ -381,6 +382,31 @@ class ProgressCSVCallback(BaseCallback):
         self.returns, self.successes = [], []
 
 
+class AtomicCheckpointCallback(CheckpointCallback):
+    """SB3's ``CheckpointCallback`` whose files each appear whole or not at all.
+
+    A run killed mid-save (a sweep's lost Ray worker) used to leave a truncated zip behind. Because an SB3
+    archive nests torch's own zip files (``policy.pth``), a truncated one can still open as the *inner*
+    archive, without the model's data, and the resumed run failed. Each file is written beside its final
+    name and renamed into place; the reward statistics come first, so a checkpoint's zip implies its pkl.
+    """
+
+    def _on_step(self) -> bool:
+        if self.n_calls % self.save_freq == 0:
+            normalizer = self.model.get_vec_normalize_env()
+            if self.save_vecnormalize and normalizer is not None:
+                _save_atomically(Path(self._checkpoint_path("vecnormalize_", extension="pkl")), normalizer.save)
+            _save_atomically(Path(self._checkpoint_path(extension="zip")), self.model.save)
+        return True
+
+
+def _save_atomically(path: Path, save: Any) -> None:
+    """Call ``save(partial)`` on a sibling path, then rename it to ``path`` (atomic on one file system)."""
+    partial = path.with_name(f"{path.stem}.partial{path.suffix}")  # keeps the suffix SB3 checks for
+    save(str(partial))
+    os.replace(partial, path)
+
+
 class ThreadsCallback(BaseCallback):
     """Give the learner ``update`` torch threads for the PPO update and ``collect`` while collecting rollouts.
 
@@ -593,7 +619,7 @@ def train(
             curriculum,
             MultiSceneCallback(config, curriculum),
             progress,
-            CheckpointCallback(
+            AtomicCheckpointCallback(
                 # at rollout ends, so a resumed run loses no collected samples
                 max(round(checkpoint_every / (config.n_envs * config.n_steps)), 1) * config.n_steps,
                 str(out / "checkpoints"),
