@@ -346,6 +346,40 @@ def test_act_batch_is_predict_on_the_stacked_batch(tiny_ppo, tmp_path: Path) -> 
     np.testing.assert_allclose(agent.act_batch(obs), expected, rtol=0, atol=1e-6)
 
 
+def test_the_direct_mean_action_is_bit_identical_to_predict_on_the_papers_gru_policy(tmp_path: Path) -> None:
+    """act_batch computes a Gaussian policy's mean itself (no distribution object): same bits as ``_predict``."""
+    import dataclasses
+
+    from stable_baselines3 import SAC
+
+    from racebench.training.train import TrainConfig, make_envs, make_model
+
+    config = dataclasses.replace(TrainConfig.from_yaml("vision-ppo"), n_envs=2, n_steps=32, batch_size=32,
+                                 n_epochs=1, vec_env="dummy", num_processes=1)  # fmt: skip
+    env = make_envs(config, "S", 0)
+    make_model(config, env, seed=0, tensorboard=None).save(tmp_path / "gru.zip")
+    env.close()
+    direct, reference = (load_agent(str(tmp_path / "gru.zip"), trust_code=True) for _ in range(2))
+    envs = [gym.make("RaceObs-S-v0") for _ in range(3)]
+    obs = [e.reset(seed=EVAL_SEED_BASE + i)[0] for i, e in enumerate(envs)]
+    direct.start(3), reference.start(3)
+    assert direct.lean
+    reference.lean = False  # sb3-contrib's own _predict
+    for t in range(12):
+        if t == 6:
+            direct.reset_slot(1), reference.reset_slot(1)
+        actions = direct.act_batch(obs)
+        np.testing.assert_array_equal(actions, reference.act_batch(obs))
+        obs = [e.step(a)[0] for e, a in zip(envs, actions, strict=True)]
+    for e in envs:
+        e.close()
+    sac = SAC("MlpPolicy", gym.make("RaceObs-S-Level1-v0", obs_mode="state"), learning_starts=0, device="cpu")
+    sac.save(tmp_path / "sac.zip")
+    squashed = load_agent(str(tmp_path / "sac.zip"), trust_code=True)
+    squashed.start(2)
+    assert not squashed.lean  # not an actor-critic with a Gaussian head: through _predict
+
+
 def test_lockstep_flies_the_same_episodes_as_one_at_a_time(tiny_ppo, tmp_path: Path) -> None:
     _, path = tiny_ppo
     envs = ["RaceObs-S-Level1-v0", "RaceObs-S-v0"]

@@ -44,7 +44,10 @@ def small(config: TrainConfig, **changes) -> TrainConfig:
 
 def test_every_baseline_config_loads() -> None:
     names = {TrainConfig.from_yaml(p).name for p in BASELINES}
-    assert names == {"vision-ppo", "state-ppo", "vision-no-gru", "vision-no-avoid", "vision-one-step", "vision-com"}
+    assert names == {
+        "vision-ppo", "state-ppo", "vision-no-gru", "vision-no-avoid", "vision-one-step", "vision-com",
+        "vision-ppo-fast",
+    }  # fmt: skip
     assert TrainConfig.from_yaml(BASELINES[0].parent / "vision-no-avoid.yaml").level_kwargs(3)["reward_weights"] == {
         "speed": 0.0,
         "avoid": 0.0,
@@ -339,6 +342,27 @@ def test_threads_callback_switches_around_the_update() -> None:
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
+
+
+def test_the_fast_variant_differs_from_the_paper_config_only_by_its_two_switches() -> None:
+    """vision-ppo-fast: an MLP critic (no critic GRU) and 2 epochs; the actor and everything else as vision-ppo."""
+    paper, fast = TrainConfig.from_yaml("vision-ppo"), TrainConfig.from_yaml("vision-ppo-fast")
+    changed = {f.name for f in dataclasses.fields(TrainConfig) if getattr(paper, f.name) != getattr(fast, f.name)}
+    assert changed == {"name", "critic_gru", "n_epochs"} and paper.critic_gru and paper.n_epochs == 4
+    built = {}
+    for config in (paper, fast):
+        config = small(config, n_epochs=config.n_epochs)
+        env = make_envs(config, "S", 0)
+        built[config.name] = make_model(config, env, seed=0, tensorboard=None)
+        env.close()
+    gru, mlp = built["vision-ppo"].policy, built["vision-ppo-fast"].policy
+    assert isinstance(gru.lstm_critic, LSTMShapedGRU) and mlp.lstm_critic is None
+    assert isinstance(mlp.critic, torch.nn.Linear) and mlp.critic.in_features == gru.features_dim
+    assert isinstance(mlp.lstm_actor, LSTMShapedGRU) and mlp.lstm_actor.hidden_size == gru.lstm_actor.hidden_size
+    assert built["vision-ppo-fast"].n_epochs == 2 and built["vision-ppo"].n_epochs == 4
+    n_params = {name: sum(p.numel() for p in m.policy.parameters()) for name, m in built.items()}
+    critic_gru = sum(p.numel() for p in gru.lstm_critic.parameters()) - sum(p.numel() for p in mlp.critic.parameters())
+    assert n_params["vision-ppo"] - n_params["vision-ppo-fast"] == critic_gru
 
 
 def test_builtin_baseline_names_resolve_and_unknown_ones_are_named() -> None:

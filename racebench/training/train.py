@@ -56,6 +56,7 @@ BASELINES: tuple[str, ...] = (
     "vision-no-avoid",
     "vision-one-step",
     "vision-com",
+    "vision-ppo-fast",
 )
 
 
@@ -108,6 +109,7 @@ class TrainConfig:
     normalize_reward: bool = True  # SB3's VecNormalize on rewards only (observations are already scaled)
     log_std_init: float = 0.0  # initial log σ of the Gaussian policy (SB3's default 0: σ = 1 on [-1, 1] actions)
     gru_hidden: int = 256
+    critic_gru: bool = True  # the critic's own GRU (the paper's method); False: an MLP critic on the features
     net_arch: tuple[int, ...] = (192, 96)
     cnn: str = "strided"  # depth CNN, see racebench.training.policies.depth_cnn ("paper": conv + max-pool)
     torch_threads: int = 1  # learner threads while collecting: more oversubscribes the cores the env workers use
@@ -542,7 +544,7 @@ def make_model(config: TrainConfig, env: VecEnv, seed: int, tensorboard: str | N
             # the actor's GRU output detached, so the value loss never shapes the recurrent features; with it
             # no level-1 run learned here (baselines/experiments/README.md).
             shared_lstm=False,
-            enable_critic_lstm=True,
+            enable_critic_lstm=config.critic_gru,
             net_arch=dict(pi=arch, vf=arch),
             log_std_init=config.log_std_init,
         )
