@@ -66,7 +66,7 @@ class BenchSettings:
     vector_steps: int = 150  # vector steps (each steps every env) per measurement
     train_updates: int = 3  # timed PPO updates (rollout + update) of each training measurement, after one warm-up
     train_small: bool = False  # shrink the training configs to 4 envs x 16 steps (smoke test)
-    eval_episodes: int = 32  # episodes of each evaluation measurement
+    eval_episodes: int = 64  # episodes of each evaluation measurement (an evaluation flies its own in one lockstep)
     eval_batch: int = 16  # lockstep width of the evaluation measurements
     seed: int = 0
     # The evaluation of the committed checkpoints and end-to-end training take minutes whatever their sizes

@@ -32,7 +32,7 @@ import re
 import shutil
 import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -187,11 +187,17 @@ def _close_pool() -> None:
     _WORKER["pool"] = {}
 
 
-def _fly(jobs: list[tuple[str, int]], writer: RecordWriter, width: int, save_trajectories: bool) -> list[str]:
+def _fly(
+    jobs: list[tuple[str, int]],
+    writer: RecordWriter,
+    width: int,
+    save_trajectories: bool,
+    on_written: Callable[[], None] | None = None,
+) -> list[str]:
     """Fly ``jobs`` with this process's agent, writing each record as its episode ends; return the names.
 
     A :class:`~racebench.rollout.BatchAgent` flies ``width`` episodes in lockstep; any other agent one
-    episode at a time.
+    episode at a time. ``on_written`` is called after each record (progress).
     """
     agent = _WORKER["agent"]
     written: list[str] = []
@@ -201,6 +207,8 @@ def _fly(jobs: list[tuple[str, int]], writer: RecordWriter, width: int, save_tra
 
     def done(env_id: str, seed: int, result: dict[str, Any], flown: dict | None) -> None:
         written.append(writer.write(env_id, seed, result, flown))
+        if on_written is not None:
+            on_written()
 
     if width > 1 and isinstance(agent, BatchAgent):
         pool = _WORKER["pool"]  # envs kept between this process's tasks: building one costs ~20-50 ms
@@ -433,10 +441,8 @@ class Evaluator:
         elif self.workers == 1 or len(tasks) <= 1:
             with SingleTorchThread():
                 _worker_init(self.agent_spec, self.renderer, self.trust_code, torch_threads(), self.agent_kwargs)
-                try:
-                    for task in tasks:
-                        self.done.update(_fly(task, self.writer, self.batch, self.save_trajectories))
-                        bar.update(len(task))
+                try:  # one lockstep over every episode: its slots idle only at the very end, not after each task
+                    self.done.update(_fly(todo, self.writer, self.batch, self.save_trajectories, lambda: bar.update(1)))
                 finally:
                     _close_pool()
         else:
