@@ -9,6 +9,8 @@ import subprocess
 from html.parser import HTMLParser
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 import pytest
 from leaderboard_fixtures import GC_AGENT, add, make_repo, write_hover_onnx, write_records
 
@@ -144,6 +146,64 @@ def test_aggregate_statistics_bootstrap_and_the_single_seed_caveat(site: Path) -
     assert set(rows) == {"strong", "weak", "verified-onnx", "planner"}
     assert "one training run" in rows["strong"][4][0]
     assert "single training run (one training seed)" in (site / "index.html").read_text()
+
+
+def test_probability_of_improvement_within_a_tier(site: Path) -> None:
+    rows = parse(site / "index.html").tables["improvement"][1:]
+    assert [(row[0][0], row[1][0]) for row in rows] == [("strong", "weak")]  # the verified tier has one entry
+    # 9/10 against 2/10 on every track: P = 0.9 * 0.8 + (0.9 * 0.2 + 0.1 * 0.8) / 2 = 0.85.
+    point, interval = rows[0][2][0].split(" ", 1)
+    low, high = (float(x) for x in interval.strip("[]").split("–"))
+    assert float(point) == pytest.approx(0.85) and 0.5 < low < 0.85 < high <= 1.0
+
+
+def test_probability_of_improvement_is_mann_whitney_u_over_n_m() -> None:
+    from scipy.stats import mannwhitneyu
+
+    from racebench.leaderboard.site import probability_of_improvement
+
+    rng = np.random.default_rng(5)
+    ids = ["A", "B"]
+    x = [{"env_id": i, "success": bool(s)} for i in ids for s in rng.random(40) < (0.7 if i == "A" else 0.4)]
+    y = [{"env_id": i, "success": bool(s)} for i in ids for s in rng.random(30) < 0.5]
+    expected = np.mean([
+        mannwhitneyu([r["success"] for r in x if r["env_id"] == i], [r["success"] for r in y if r["env_id"] == i])
+        .statistic / (40 * 30) for i in ids
+    ])  # fmt: skip
+    result = probability_of_improvement(x, y, ids)
+    assert result["p"] == pytest.approx(expected) and result["low"] < result["p"] < result["high"]
+    assert probability_of_improvement(x, x, ids)["p"] == pytest.approx(0.5)
+    wins = [{"env_id": i, "success": True} for i in ids]
+    losses = [{"env_id": i, "success": False} for i in ids]
+    assert probability_of_improvement(wins, losses, ids) == {"p": 1.0, "low": 1.0, "high": 1.0}
+
+
+def test_paper_tables_bold_only_where_intervals_separate(site: Path) -> None:
+    from racebench.leaderboard.site import paper_table_html
+
+    # On the fixture site no SR interval is separated from every rival's (strong's [60–98] meets verified's).
+    table = parse(site / "index.html").tables["table-ii"]
+    assert len(table) == 1 + 5 and not any(bold for row in table[1:] for _, bold in row)
+    assert ("90 [60–98]", False) in [row[3] for row in table[1:]]  # strong's SR on S
+    rows = []
+    for agent, privileged, k in (("good", False, 10), ("bad", False, 0), ("ref", True, 10), ("mid", False, 6)):
+        low, high = wilson_interval(k, 10)
+        rows.append({"agent": agent, "privileged": privileged, "env_id": "RaceObs-S-v0", "track": "S",
+                     "variant": "default", "n": 10, "successes": k, "success_rate": k / 10, "sr_ci_low": low,
+                     "sr_ci_high": high, "lap_time_mean": 5.0, "lap_time_median": 5.0,
+                     "lap_time_std": 0.1})  # fmt: skip
+    separated = parse_html(paper_table_html(pd.DataFrame(rows[:3]), "II"))
+    sr_on_s = sorted(cells[3] for cells in separated[1:])  # good, bad and the privileged ref
+    assert sr_on_s == [("0 [0–28]", False), ("100 [72–100]", False), ("100 [72–100]", True)]  # ref never bold
+    overlapping = parse_html(paper_table_html(pd.DataFrame([rows[0], rows[3]]), "II"))
+    assert not any(b for cells in overlapping[1:] for _, b in cells)  # 10/10 [72–100] meets 6/10 [31–83]
+
+
+def parse_html(text: str) -> list:
+    """The rows of the single table in an HTML fragment."""
+    page = Page()
+    page.feed(text)
+    return next(iter(page.tables.values()))
 
 
 def test_entry_pages_show_metadata_and_every_cell(site: Path) -> None:

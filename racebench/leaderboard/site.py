@@ -26,10 +26,12 @@ import json
 import math
 import shutil
 from collections.abc import Sequence
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 import racebench
 from racebench.leaderboard.entries import MAIN_IDS, TIERS, Cell, Entry, load_config, load_entries, summarize_cells
@@ -268,6 +270,139 @@ def _aggregate_table(entries: list[Entry], data: dict[str, dict[str, Any]]) -> s
     )
 
 
+def ranked_summary(entries: Sequence[Entry], accepted: Sequence[str]) -> pd.DataFrame:
+    """Every entry's ranked records summarised as ``racebench table`` summarises an evaluation (one agent each)."""
+    from racebench.evaluation import summarize
+
+    rows = [
+        {"agent": e.name, "privileged": e.tier(accepted) == "reference", "env_id": r["env_id"],
+         "success": bool(r["success"]), "lap_time": r["lap_time"]}
+        for e in entries
+        for r in e.ranked_records(accepted)
+    ]  # fmt: skip
+    if not rows:
+        return pd.DataFrame()
+    return summarize(pd.DataFrame(rows))
+
+
+def _separated(intervals: dict[str, tuple[float, float]]) -> set[str]:
+    """Keys whose interval lies strictly above every other key's (needs a rival)."""
+    return {
+        k for k, (low, _) in intervals.items()
+        if len(intervals) > 1 and all(low > high for other, (_, high) in intervals.items() if other != k)
+    }  # fmt: skip
+
+
+def paper_table_html(summary: pd.DataFrame, which: str) -> str:
+    """Table II or IV of the paper as HTML: the cells of ``racebench table``, bold only where the Wilson interval
+    of a non-privileged entry lies entirely above every other non-privileged entry's in the same comparison (a
+    track's SR column in II; a row and track in IV). Lap times are never bold: no interval is shown for them."""
+    from racebench.tables import TRACK_NAMES, TRACK_ORDER, _agent_label, _lookup, table_ii, table_iv
+
+    agents = list(dict.fromkeys(summary["agent"]))
+    privileged = {a: bool(summary.loc[summary["agent"] == a, "privileged"].any()) for a in agents}
+    learned = [a for a in agents if not privileged[a]]
+
+    def intervals(track: str, variant: str) -> dict[str, tuple[float, float]]:
+        rows = {a: _lookup(summary, a, track, variant) for a in learned}
+        return {a: (float(r["sr_ci_low"]), float(r["sr_ci_high"])) for a, r in rows.items() if r is not None}
+
+    bold: set[tuple[str, str]] = set()
+    if which == "II":
+        frame, _ = table_ii(summary, ci=True, lap_time=True)
+        for track in TRACK_ORDER:
+            bold |= {
+                (_agent_label(a, False), f"SR [%] {TRACK_NAMES[track]}")
+                for a in _separated(intervals(track, "default"))
+            }
+    else:
+        frame, _ = table_iv(summary, ci=True)
+        for variant in frame.index:
+            key = variant.replace("Density ", "Density").replace("Gate ±", "GateShift").removesuffix(" m")
+            for track in TRACK_ORDER:
+                for a in _separated(intervals(track, key)):
+                    bold.add((variant, f"{_agent_label(a, False)} {TRACK_NAMES[track]}"))
+    head = "".join(f"<th>{_esc(c)}</th>" for c in frame.columns)
+    body = []
+    for label, row in frame.iterrows():
+        cells = "".join(
+            f'<td class="num{" best" if (label, col) in bold else ""}">{_esc(row[col])}</td>' for col in frame.columns
+        )
+        body.append(f"<tr><th>{_esc(label)}</th>{cells}</tr>")
+    return f'<table id="table-{which.lower()}">\n<tr><th></th>{head}</tr>\n' + "\n".join(body) + "\n</table>"
+
+
+def _paper_tables_section(entries: Sequence[Entry], accepted: Sequence[str]) -> str:
+    """The paper's Tables II and IV over every entry's ranked records (Table III holds the ablations)."""
+    summary = ranked_summary(entries, accepted)
+    parts = ['\n<h2 id="paper-tables">The paper\'s tables</h2>\n<p>The cells of <code>racebench table</code> over'
+             " every entry's ranked records: SR in % with the 95 % Wilson interval, n episodes per cell on the entry's"
+             " page. Bold only where intervals separate entries (references never bold). Table III (the ablations)"
+             " appears here once ablation entries exist.</p>"]  # fmt: skip
+    if summary.empty:
+        return parts[0] + '<p class="muted">No records.</p>'
+    main = summary[summary["variant"] == "default"]
+    variants = summary[summary["variant"].str.startswith(("Density", "GateShift"))]
+    if not main.empty:
+        parts.append("<h3>Table II: lap time (mean over successful laps) and success rate per track</h3>")
+        parts.append(paper_table_html(summary, "II"))
+    if not variants.empty:
+        parts.append("<h3>Table IV: success rate vs obstacle density and gate shift</h3>")
+        parts.append(paper_table_html(summary[summary["agent"].isin(set(variants["agent"]))], "IV"))
+    return "\n".join(parts)
+
+
+def probability_of_improvement(
+    x: Sequence[dict[str, Any]], y: Sequence[dict[str, Any]], ids: Sequence[str]
+) -> dict[str, float]:
+    """P(an episode of X succeeds where one of Y does not) + half the ties, averaged over ``ids`` (rliable's
+    probability of improvement, a Mann–Whitney U / (n·m) per track, here over evaluation episodes), with a 95 %
+    percentile interval from scipy's bootstrap resampling each entry's episodes within each track (tests check
+    the closed form against ``scipy.stats.mannwhitneyu``)."""
+    from scipy.stats import bootstrap
+
+    samples = []
+    for env_id in ids:
+        samples.append(np.array([float(r["success"]) for r in x if r["env_id"] == env_id]))
+        samples.append(np.array([float(r["success"]) for r in y if r["env_id"] == env_id]))
+
+    def statistic(*arrays: np.ndarray, axis: int = -1) -> np.ndarray:
+        per_track = []
+        for a, b in zip(arrays[::2], arrays[1::2], strict=True):
+            # P(X > Y) + P(X = Y) / 2 for 0/1 outcomes, vectorised over bootstrap resamples.
+            pa, pb = a.mean(axis=axis), b.mean(axis=axis)
+            per_track.append(pa * (1 - pb) + 0.5 * (pa * pb + (1 - pa) * (1 - pb)))
+        return np.mean(per_track, axis=0)
+
+    point = float(statistic(*samples))
+    if all(np.all(a == a[0]) for a in samples):
+        return {"p": point, "low": point, "high": point}
+    result = bootstrap(samples, statistic, n_resamples=BOOTSTRAP_RESAMPLES, confidence_level=0.95,
+                       method="percentile", rng=np.random.default_rng(BOOTSTRAP_SEED))  # fmt: skip
+    return {"p": point, "low": float(result.confidence_interval.low), "high": float(result.confidence_interval.high)}
+
+
+def _improvement_table(entries: list[Entry], accepted: Sequence[str]) -> str:
+    """Probability of improvement of each ranked non-reference entry over the next one of its tier."""
+    pairs = []
+    for tier in (t for t in TIERS if t != "reference"):
+        ranked = [e for e in entries if e.tier(accepted) == tier and covers_main(e, accepted)]
+        pairs += list(pairwise(ranked))
+    rows = []
+    for better, worse in pairs:
+        result = probability_of_improvement(better.ranked_records(accepted), worse.ranked_records(accepted), MAIN_IDS)
+        rows.append(
+            f'<tr><td>{_esc(better.name)}</td><td>{_esc(worse.name)}</td><td class="num">{result["p"]:.2f} '
+            f"<small>[{result['low']:.2f}–{result['high']:.2f}]</small></td></tr>"
+        )
+    if not rows:
+        return '<p class="muted">Fewer than two ranked entries flown on all three main ids: nothing to compare.</p>'
+    return (
+        '<table id="improvement">\n<tr><th>entry X</th><th>entry Y (next in X\'s tier)</th>'
+        "<th>P(X &gt; Y) [95 % bootstrap]</th></tr>\n" + "\n".join(rows) + "\n</table>"
+    )
+
+
 def _entry_page(entry: Entry, data: dict[str, Any], accepted: Sequence[str]) -> str:
     meta = entry.meta
     tier = data["tier"]
@@ -362,6 +497,13 @@ def build_site(leaderboard: str | Path, out: str | Path) -> Path:
         " would be bootstrapped over runs as well (rliable-style). Entries flown on fewer than two main ids are"
         " left out.</p>\n"
         + _aggregate_table(ranked, data)
+        + '\n<h3 id="probability-of-improvement">Probability of improvement</h3>\n'
+        "<p>P(X &gt; Y): the chance that an episode of X succeeds where one of Y fails, plus half the ties, averaged"
+        " over the three main ids (rliable's probability of improvement; Mann–Whitney U / (n·m) per track), between"
+        " each ranked entry and the next one of its tier, with a stratified bootstrap interval. With one training"
+        " run per entry it compares these two policy files on these scenes, not two training methods.</p>\n"
+        + _improvement_table(ranked, accepted)
+        + _paper_tables_section(entries, accepted)
         + f'\n<script type="application/json" id="leaderboard-data">{blob}</script>'
     )
     index = out / "index.html"
