@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from leaderboard_fixtures import GC_AGENT, add, make_repo, write_hover_onnx, write_records
+from leaderboard_fixtures import GC_AGENT, add, evaluate, make_repo, write_hover_onnx, write_records
 
 from racebench import cli
 from racebench.leaderboard.entries import MAIN_IDS
@@ -197,6 +197,31 @@ def test_paper_tables_bold_only_where_intervals_separate(site: Path) -> None:
     assert sr_on_s == [("0 [0–28]", False), ("100 [72–100]", False), ("100 [72–100]", True)]  # ref never bold
     overlapping = parse_html(paper_table_html(pd.DataFrame([rows[0], rows[3]]), "II"))
     assert not any(b for cells in overlapping[1:] for _, b in cells)  # 10/10 [72–100] meets 6/10 [31–83]
+
+
+def test_entry_pages_show_trajectory_plots_and_on_demand_videos(tmp_path: Path, monkeypatch) -> None:
+    """Trajectories saved with the records become a plot per main id; videos only with videos=True."""
+    import racebench.video
+    from racebench.leaderboard.site import build_site
+
+    board = make_repo(tmp_path)
+    flown = evaluate("follow", tmp_path / "results" / "follow", 1, envs=(MAIN_IDS[0],), save_trajectories=True)
+    add(board, "follow", "follow", [flown])
+    written_site = build_site(board, tmp_path / "site")
+    page = (written_site.parent / "entries" / "follow.html").read_text()
+    assert 'src="follow/S.png"' in page and (written_site.parent / "entries" / "follow" / "S.png").stat().st_size > 0
+    assert "No saved trajectories for RaceObs-Circle-v0, RaceObs-J-v0" in page and "<video" not in page
+
+    def fake_video(spec, env_id, seed, path, **kw):  # flying the episode is tested in test_video.py
+        Path(path).write_bytes(b"mp4")
+        return Path(path), {}
+
+    monkeypatch.setattr(racebench.video, "render_episode_video", fake_video)
+    with_videos = build_site(board, tmp_path / "site", videos=True)
+    page = (with_videos.parent / "entries" / "follow.html").read_text()
+    assert page.count("<video") == 1 and (with_videos.parent / "entries" / "follow" / "S.mp4").is_file()
+    for ref in parse(with_videos.parent / "entries" / "follow.html").refs:
+        assert (with_videos.parent / "entries" / ref).resolve().is_file(), ref
 
 
 def parse_html(text: str) -> list:

@@ -42,6 +42,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p_build = lb.add_parser("build", help="write the static site (plain HTML/CSS, data embedded)")
     p_build.add_argument("--out", required=True, help="output folder of the site")
     p_build.add_argument("--leaderboard", default=DEFAULT_LEADERBOARD, help=f"(default {DEFAULT_LEADERBOARD})")
+    p_build.add_argument(
+        "--videos",
+        action="store_true",
+        help="also fly one episode per main id of every entry and show its video (not committed)",
+    )
+    p_build.add_argument("--trust-code", action="store_true",
+                         help="with --videos: allow entries whose policy runs code (.zip, Python)")  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         elif args.leaderboard_command == "build":
             from racebench.leaderboard.site import build_site
 
-            index = build_site(args.leaderboard, args.out)
+            index = build_site(args.leaderboard, args.out, videos=args.videos, trust_code=args.trust_code)
             print(f"wrote {index}")
     except (EntryError, AgentLoadError, ValueError, OSError) as exc:
         raise SystemExit(f"{command}: {exc}") from exc

@@ -1,7 +1,8 @@
 """``racebench leaderboard build``: a self-contained static site of the leaderboard (plain HTML and CSS).
 
-No server, no script, no external URL: ``index.html`` (the ranking per tier and aggregate statistics),
-``entries/<name>.html`` (metadata and every cell of an entry) and ``style.css``. The data behind the pages is
+No server, no script, no external URL: ``index.html`` (the ranking per tier, aggregate statistics and the
+paper's tables), ``entries/<name>.html`` (metadata, every cell, trajectory plots in ``entries/<name>/`` and,
+built on demand with ``videos=True``, one video per main id) and ``style.css``. The data behind the pages is
 embedded in ``index.html`` as JSON (``<script type="application/json" id="leaderboard-data">``, which a browser
 does not execute) for anyone who wants the numbers without parsing tables. The build is deterministic: no
 timestamps, a fixed bootstrap seed.
@@ -39,6 +40,7 @@ from racebench.registration import ENV_VERSION
 
 BOOTSTRAP_RESAMPLES = 2000
 BOOTSTRAP_SEED = 0
+PLOT_DPI = 130  # the trajectory figures are committed with the site: ~600 px wide PNGs
 TRACK_LABELS: dict[str, str] = {"RaceObs-S-v0": "S", "RaceObs-Circle-v0": "3D Circle", "RaceObs-J-v0": "J"}
 TIER_TEXT: dict[str, str] = {
     "verified": "ONNX policies (no code runs) evaluated by the maintainers on the private seed set, derived from "
@@ -64,6 +66,8 @@ small, .muted { color: #57606a; }
 .tier-verified { background: #1a7f37; } .tier-self-reported { background: #9a6700; }
 .tier-reference { background: #57606a; }
 code { font-size: 0.85rem; word-break: break-all; }
+figure { display: inline-block; margin: 0.5rem 1rem 0.5rem 0; } figcaption { color: #57606a; font-size: 0.85rem; }
+img, video { max-width: 100%; height: auto; border: 1px solid #d0d7de; }
 .note { background: #fff8c5; border: 1px solid #d4a72c; padding: 0.5rem 0.8rem; border-radius: 0.3rem; }
 """
 
@@ -403,7 +407,7 @@ def _improvement_table(entries: list[Entry], accepted: Sequence[str]) -> str:
     )
 
 
-def _entry_page(entry: Entry, data: dict[str, Any], accepted: Sequence[str]) -> str:
+def _entry_page(entry: Entry, data: dict[str, Any], accepted: Sequence[str], media: str = "") -> str:
     meta = entry.meta
     tier = data["tier"]
     why = {
@@ -444,12 +448,72 @@ def _entry_page(entry: Entry, data: dict[str, Any], accepted: Sequence[str]) -> 
         '<h2>Every evaluated cell</h2>\n<p class="muted">SR: success rate, 95 % Wilson interval, successes/episodes.'
         " Lap time over successful laps.</p>\n"
         '<table id="cells"><tr><th>env id</th><th>seed set</th><th>n</th><th>SR</th><th>mean lap</th>'
-        "<th>median lap</th></tr>\n" + "\n".join(cell_rows) + "\n</table>"
+        "<th>median lap</th></tr>\n" + "\n".join(cell_rows) + "\n</table>\n" + media
     )
     return _page(f"{entry.name} · racebench leaderboard", body, "../style.css")
 
 
-def build_site(leaderboard: str | Path, out: str | Path) -> Path:
+def entry_media(entry: Entry, folder: Path, videos: bool = False, trust_code: bool = False) -> str:
+    """Trajectory plots (and, with ``videos``, one episode video) per main id of ``entry``, written into ``folder``;
+    return the HTML section that shows them.
+
+    A plot is the paper's Fig. 4 (:func:`racebench.plots.plot_track_3d`) from the trajectories saved with the
+    entry's records (``evaluate --save-trajectories``): one scene, the entry's flights in it. A video flies the
+    entry's policy on the first public evaluation seed (:func:`racebench.video.render_episode_video`): chase view
+    beside the colour-mapped depth image, outcome captioned. Videos are built on demand and not committed.
+    """
+    from racebench.evaluation import EVAL_SEED_BASE
+    from racebench.plots import plot_track_3d
+
+    record_dirs = [entry.root / d for d in entry.meta.get("records", [])]
+    figures, missing = [], []
+    for env_id in MAIN_IDS:
+        source = next(
+            (d for d in record_dirs if any(r["env_id"] == env_id for r in entry.records)
+             and _has_trajectories(d, env_id)), None,
+        )  # fmt: skip
+        if source is None:
+            missing.append(env_id)
+            continue
+        png = folder / f"{TRACK_LABELS[env_id].replace(' ', '-')}.png"
+        folder.mkdir(parents=True, exist_ok=True)
+        plot_track_3d(source, env_id, png, dpi=PLOT_DPI)
+        figures.append(f'<figure><img src="{_esc(folder.name)}/{_esc(png.name)}" alt="trajectories on {_esc(env_id)}"'
+                       f"><figcaption>{_esc(env_id)}</figcaption></figure>")  # fmt: skip
+    parts = ['<h2 id="trajectories">Trajectories</h2>']
+    parts += figures or []
+    if missing:
+        parts.append(f'<p class="muted">No saved trajectories for {_esc(", ".join(missing))}: the records were'
+                     " written without <code>--save-trajectories</code>.</p>")  # fmt: skip
+    clips = []
+    if videos:
+        from racebench.video import render_episode_video
+
+        for env_id in MAIN_IDS:
+            if any(r["env_id"] == env_id for r in entry.records):
+                mp4 = folder / f"{TRACK_LABELS[env_id].replace(' ', '-')}.mp4"
+                folder.mkdir(parents=True, exist_ok=True)
+                render_episode_video(entry.agent_spec, env_id, EVAL_SEED_BASE, mp4, trust_code=trust_code,
+                                     label=entry.name)  # fmt: skip
+                caption = f"{_esc(env_id)}, seed {EVAL_SEED_BASE}"
+                clips.append(f'<figure><video src="{_esc(folder.name)}/{_esc(mp4.name)}" controls width="640">'
+                             f"</video><figcaption>{caption}</figcaption></figure>")  # fmt: skip
+    parts.append('<h2 id="videos">Videos</h2>')
+    parts += clips or ['<p class="muted">Built on demand, not committed: <code>racebench leaderboard build --out DIR'
+                       " --videos</code> flies one episode per main id and shows it here.</p>"]  # fmt: skip
+    return "\n".join(parts)
+
+
+def _has_trajectories(records_dir: Path, env_id: str) -> bool:
+    """Whether ``records_dir/trajectories`` holds a saved flight of ``env_id``."""
+    for path in sorted((records_dir / "trajectories").glob("*.npz")):
+        with np.load(path) as data:
+            if json.loads(str(data["row"]))["env_id"] == env_id:
+                return True
+    return False
+
+
+def build_site(leaderboard: str | Path, out: str | Path, videos: bool = False, trust_code: bool = False) -> Path:
     """Write the site of the entries under ``leaderboard`` into ``out`` (replacing an earlier build); return index."""
     accepted = load_config(leaderboard)["private_salt_sha256"]
     entries = load_entries(leaderboard)
@@ -472,7 +536,8 @@ def build_site(leaderboard: str | Path, out: str | Path) -> Path:
         else:
             sections.append('<p class="muted">No entries.</p>')
         for entry in members:
-            page = _entry_page(entry, data[entry.name], accepted)
+            media = entry_media(entry, out / "entries" / entry.name, videos=videos, trust_code=trust_code)
+            page = _entry_page(entry, data[entry.name], accepted, media)
             (out / "entries" / f"{entry.name}.html").write_text(page)
     ranked = [e for t in TIERS for e in rank([x for x in entries if data[x.name]["tier"] == t], accepted)]
     blob = json.dumps(
