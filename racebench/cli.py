@@ -217,6 +217,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_distill.add_argument(
         "--teacher", default="planner-fast", choices=["planner-fast", "planner"], help="privileged teacher"
     )
+    p_distill.add_argument(
+        "--resume", action="store_true", help="continue the run in --out from its last finished iteration"
+    )
 
     p_onnx = sub.add_parser("export-onnx", help="export an SB3 checkpoint's deterministic actor to ONNX")
     p_onnx.add_argument("checkpoint", help="SB3 / sb3-contrib .zip (feed-forward or racebench GRU policy)")
@@ -321,7 +324,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         except ValueError as exc:
             raise SystemExit(f"racebench {exc}") from exc
         out = args.out or Path("runs") / f"vision-dagger-{args.track}-seed{args.seed}"
-        print(json.dumps(distill(config, out, eval_episodes=args.eval_episodes), indent=2))
+        try:
+            summary = distill(config, out, eval_episodes=args.eval_episodes, resume=args.resume)
+        except ValueError as exc:
+            raise SystemExit(f"racebench distill: {exc}") from exc
+        print(json.dumps(summary, indent=2))
     elif args.command == "evaluate":
         return _evaluate(args)
     elif args.command == "sweep":

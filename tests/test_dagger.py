@@ -44,3 +44,26 @@ def test_a_tiny_distillation_run(tmp_path: Path) -> None:
     assert saved["teacher"] == "planner-fast" and saved["eval"]["n"] == 1  # the fast expert by default
     agent = SB3Agent(summary["checkpoint"], trust_code=True)
     assert agent.obs_mode == "vision" and not agent.privileged
+
+
+def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path) -> None:
+    """One iteration, stopped, then resumed to two: the student, dataset and rows of a run never interrupted."""
+    import torch
+
+    from racebench.training.dagger import RESUME_DIR
+
+    config = DaggerConfig(iterations=2, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64)
+    whole = distill(config, tmp_path / "whole", eval_episodes=0)
+    first = DaggerConfig(**{**config.__dict__, "iterations": 1})
+    distill(first, tmp_path / "parts", eval_episodes=0)
+    assert (tmp_path / "parts" / RESUME_DIR / "state.json").is_file()
+    resumed = distill(config, tmp_path / "parts", eval_episodes=0, resume=True)
+    a, b = (SB3Agent(s["checkpoint"], trust_code=True).model.policy.state_dict() for s in (whole, resumed))
+    assert all(torch.equal(a[k], b[k]) for k in a)  # bit for bit: same labels, same minibatches, same Adam state
+    columns = ["iteration", "beta", "episodes", "samples", "loss"]
+    rows = [pd.read_csv(tmp_path / d / "progress.csv")[columns] for d in ("whole", "parts")]
+    pd.testing.assert_frame_equal(*rows)
+    assert not list((tmp_path / "parts").glob(f"{RESUME_DIR}.*"))  # no partial or old state left behind
+
+    with pytest.raises(ValueError, match="epochs=1, not 2"):  # another setting: not the same run
+        distill(DaggerConfig(**{**config.__dict__, "epochs": 2}), tmp_path / "parts", eval_episodes=0, resume=True)

@@ -200,8 +200,71 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
     return float(np.mean(losses)) if losses else float("nan")
 
 
-def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10) -> dict[str, Any]:
-    """Run DAgger (see the module docstring); write the student checkpoint, ``progress.csv`` and ``summary.json``."""
+RESUME_DIR = "resume"  # in a run folder: the state after the last finished iteration
+
+
+def save_resume_state(
+    out: Path, iteration: int, student: Any, optimizer: Any, dataset: Dataset, rng: np.random.Generator,
+    seeds: list[int], rows: list[dict[str, Any]], config: DaggerConfig,
+) -> None:  # fmt: skip
+    """Everything iteration ``iteration + 1`` needs, written beside the run and swapped in whole.
+
+    The student (SB3 zip), the optimizer's state, the aggregate dataset, the numpy generator's state, the scene
+    seed counter and the progress rows. Episodes never span iterations (``collect`` starts every env afresh),
+    so nothing of the envs needs saving. The folder is written under another name and renamed into place, so a
+    kill leaves either the previous iteration's state or this one's.
+    """
+    import shutil
+
+    partial, final, old = out / f"{RESUME_DIR}.partial", out / RESUME_DIR, out / f"{RESUME_DIR}.old"
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    student.save(partial / "student.zip")
+    torch.save({"optimizer": optimizer.state_dict(), "torch_rng": torch.get_rng_state()}, partial / "optimizer.pt")
+    n = dataset.size
+    np.savez(partial / "dataset.npz", state=dataset.state[:n], depth=dataset.depth[:n], action=dataset.action[:n],
+             next=np.array(dataset.next))  # fmt: skip
+    state = {"iteration": iteration, "rng": rng.bit_generator.state, "seeds": seeds, "rows": rows,
+             "config": asdict(config)}  # fmt: skip
+    (partial / "state.json").write_text(json.dumps(_json_safe(state), allow_nan=False))
+    if final.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        final.rename(old)
+    partial.rename(final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def load_resume_state(out: Path, config: DaggerConfig) -> dict[str, Any] | None:
+    """The state :func:`save_resume_state` left in ``out`` (``None`` if there is none), checked against ``config``.
+
+    Every setting must match the saved run's except ``iterations``, which may grow (a finished run continues).
+    """
+    folder = out / RESUME_DIR
+    if not (folder / "state.json").is_file():
+        return None
+    try:
+        state = json.loads((folder / "state.json").read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"dagger: {folder / 'state.json'} is not valid JSON ({exc})") from exc
+    saved, asked = dict(state["config"]), asdict(config)
+    for key in asked:
+        if key != "iterations" and saved.get(key) != asked[key]:
+            raise ValueError(
+                f"dagger: cannot resume {out}: it was run with {key}={saved.get(key)!r}, not {asked[key]!r}"
+            )
+    if state["iteration"] + 1 > config.iterations:
+        raise ValueError(
+            f"dagger: {out} has finished {state['iteration'] + 1} iterations, more than the {config.iterations} asked"
+        )
+    return state
+
+
+def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resume: bool = False) -> dict[str, Any]:
+    """Run DAgger (see the module docstring); write the student checkpoint, ``progress.csv`` and ``summary.json``.
+
+    After every iteration the run's state is saved in ``out/resume/``; ``resume=True`` continues from it (the
+    same student, optimizer, dataset and random streams: the same result as a run never interrupted, tested).
+    """
     import pandas as pd
 
     from racebench.records import atomic_write
@@ -209,6 +272,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10) -> d
     config.validate()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    saved = load_resume_state(out, config) if resume else None
     env_id = config.env_id or f"RaceObs-{config.track}-v0"
     made = [
         gym.make(env_id, obs_mode="vision", renderer="raycast", gate_shift=config.gate_shift)
@@ -224,8 +288,22 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10) -> d
     dataset = Dataset(config.max_samples, envs[0].camera.size)
     seeds = [config.seed * 1000]  # training seeds, far below the evaluation seeds
     rows: list[dict[str, Any]] = []
-    started = time.perf_counter()
-    for k in tqdm(range(config.iterations), desc="dagger", unit="it"):
+    first, offset = 0, 0.0
+    if saved is not None:
+        folder = out / RESUME_DIR
+        policy.load_state_dict(type(policy_model).load(folder / "student.zip", device="cpu").policy.state_dict())
+        extra = torch.load(folder / "optimizer.pt", weights_only=False)  # written by this function: trusted
+        optimizer.load_state_dict(extra["optimizer"])
+        torch.set_rng_state(extra["torch_rng"])
+        with np.load(folder / "dataset.npz") as data:
+            n = len(data["state"])
+            dataset.state[:n], dataset.depth[:n], dataset.action[:n] = data["state"], data["depth"], data["action"]
+            dataset.size, dataset.next = n, int(data["next"])
+        rng.bit_generator.state = saved["rng"]
+        seeds, rows = saved["seeds"], saved["rows"]
+        first, offset = saved["iteration"] + 1, float(rows[-1]["wall_s"]) if rows else 0.0
+    started = time.perf_counter() - offset  # wall clock over the resumed parts
+    for k in tqdm(range(first, config.iterations), desc="dagger", unit="it", initial=first, total=config.iterations):
         beta = config.beta_decay**k
         torch.set_num_threads(1)
         flown = collect(envs, teachers, policy, beta, config.steps_per_iteration, rng, seeds, dataset)
@@ -236,6 +314,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10) -> d
         atomic_write(out / "progress.csv", pd.DataFrame(rows).to_csv(index=False))
         # The student after every iteration, so a killed run leaves its latest policy behind.
         policy_model.save(out / f"vision-dagger-{config.track}.zip")
+        save_resume_state(out, k, policy_model, optimizer, dataset, rng, seeds, rows, config)
     for m in made:
         m.close()
     checkpoint = out / f"vision-dagger-{config.track}.zip"
@@ -264,6 +343,8 @@ def _json_safe(value: Any) -> Any:
     """NaN (an iteration without a finished episode, a lap time without a success) as JSON ``null``."""
     if isinstance(value, dict):
         return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
     if isinstance(value, float) and not np.isfinite(value):
         return None
     return value
