@@ -529,7 +529,7 @@ def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
     A path to a ``summary.csv`` or ``episodes.csv`` stands for the directory holding it: the CSV itself is
     never read back, so an edited CSV cannot change a table.
     """
-    frames = []
+    loaded: list[tuple[Path, pd.DataFrame]] = []
     for path in paths:
         path = Path(path)
         if path.is_file() and path.name in ("summary.csv", "episodes.csv"):
@@ -539,7 +539,23 @@ def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
         episodes = load_records(path)
         if episodes.empty:
             raise ValueError(f"no valid evaluation records in {str(path)!r}")
-        frames.append(summarize(episodes))
-    if not frames:
+        loaded.append((path, episodes))
+    if not loaded:
         raise ValueError("no result directories given")
+    # One label, several policies (e.g. three per-track students all labelled "vision-dagger"): their rows would
+    # be one agent's in a table. Such labels get their directory's name (its parent's for ".../eval").
+    policies: dict[str, set[str]] = {}
+    for _, episodes in loaded:
+        for agent, group in episodes.groupby("agent"):
+            policies.setdefault(str(agent), set()).update(group["policy_sha256"].astype(str))
+    shared = {agent for agent, hashes in policies.items() if len(hashes) > 1}
+    frames = []
+    for path, episodes in loaded:
+        if shared & set(episodes["agent"]):
+            where = path.parent.name if path.name == "eval" else path.name
+            episodes = episodes.assign(agent=[f"{a} ({where})" if a in shared else a for a in episodes["agent"]])
+        frames.append(summarize(episodes))
+    if shared:
+        logger.warning("the label(s) %s name several policies: each row is labelled with its directory",
+                       ", ".join(sorted(shared)))  # fmt: skip
     return pd.concat(frames, ignore_index=True)

@@ -4,9 +4,10 @@
 * Table III: SR per track for the ablation agents (same layout as Table II's SR half);
 * Table IV: SR per track against obstacle density (2–5) and against gate shift (±0.3–±1.0 m).
 
-SR cells show the percentage and, by default, the 95 % Wilson interval. The best value of each column
-among non-privileged agents is bold; privileged agents (e.g. the planner) are marked and never bolded,
-they are a reference, not a competitor.
+SR cells show the percentage and, by default, the 95 % Wilson interval. A cell is bold only when its 95 %
+interval (Wilson for SR, Student's t for the mean lap time) lies entirely beyond every other non-privileged
+agent's in that comparison: the best point estimate alone is not a result. Privileged agents (e.g. the
+planner) are marked and never bolded: they are a reference, not a competitor.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 import math
 
 import pandas as pd
+from scipy.stats import t as student_t
 
 from racebench.evaluation import TRACK_ORDER
 from racebench.registration import DENSITIES, GATE_SHIFTS
@@ -52,14 +54,31 @@ def _agents(summary: pd.DataFrame) -> list[tuple[str, bool]]:
     return sorted(((str(a), bool(p)) for a, p in order.itertuples(index=False)), key=lambda x: (x[1], x[0]))
 
 
-def _best(values: dict[str, float], privileged: dict[str, bool], lower_is_better: bool) -> set[str]:
-    candidates = {a: v for a, v in values.items() if not privileged[a] and v is not None and math.isfinite(v)}
-    if not candidates:
-        return set()
-    target = (min if lower_is_better else max)(candidates.values())
-    if not lower_is_better and target <= 0:
-        return set()  # nobody succeeded: nothing to single out
-    return {a for a, v in candidates.items() if v == target}
+def _interval(row: pd.Series | None, lap_time: bool) -> tuple[float, float] | None:
+    """A cell's 95 % interval: Wilson for a success rate, Student's t for a mean lap time (None if unknown)."""
+    if row is None:
+        return None
+    if not lap_time:
+        return float(row["sr_ci_low"]), float(row["sr_ci_high"])
+    laps, mean, std = int(row["successes"]), float(row["lap_time_mean"]), float(row["lap_time_std"])
+    if laps < 2 or not (math.isfinite(mean) and math.isfinite(std)):
+        return None
+    half = float(student_t.ppf(0.975, laps - 1)) * std / math.sqrt(laps)
+    return mean - half, mean + half
+
+
+def _best(intervals: dict[str, tuple[float, float] | None], lower_is_better: bool) -> set[str]:
+    """Agents whose interval is entirely better than every other agent's (needs a rival; unknown never bold).
+
+    Bold means "distinguishable from the rest at 95 %", not "highest point estimate": 10/10 [72–100] against
+    9/10 [60–98] is not bold.
+    """
+    known = {a: i for a, i in intervals.items() if i is not None}
+    if len(known) < 2 or len(known) < len(intervals):
+        return set()  # an agent without an interval (no laps) cannot be ranked against
+    if lower_is_better:
+        return {a for a, (_, high) in known.items() if all(high < low for b, (low, _) in known.items() if b != a)}
+    return {a for a, (low, _) in known.items() if all(low > high for b, (_, high) in known.items() if b != a)}
 
 
 def table_ii(summary: pd.DataFrame, ci: bool = True, lap_time: bool = True) -> tuple[pd.DataFrame, set]:
@@ -74,9 +93,8 @@ def table_ii(summary: pd.DataFrame, ci: bool = True, lap_time: bool = True) -> t
             col = f"{title} {TRACK_NAMES[track]}"
             rows = {a: _lookup(summary, a, track, "default") for a, _ in agents}
             columns[col] = {a: (_lt_text(r) if is_lt else _sr_text(r, ci)) for a, r in rows.items()}
-            key = "lap_time_mean" if is_lt else "success_rate"
-            values = {a: (None if r is None else float(r[key])) for a, r in rows.items()}
-            bold |= {(a, col) for a in _best(values, privileged, lower_is_better=is_lt)}
+            intervals = {a: _interval(r, is_lt) for a, r in rows.items() if r is not None and not privileged[a]}
+            bold |= {(a, col) for a in _best(intervals, lower_is_better=is_lt)}
     labels = {a: _agent_label(a, p) for a, p in agents}
     frame = pd.DataFrame(columns, index=[a for a, _ in agents]).rename(index=labels)
     return frame, {(labels[a], col) for a, col in bold}
@@ -98,11 +116,12 @@ def table_iv(summary: pd.DataFrame, ci: bool = True) -> tuple[pd.DataFrame, set]
     # Bold: for each row and track, the best non-privileged agent.
     for label, variant in variants:
         for track in TRACK_ORDER:
-            values = {}
+            intervals = {}
             for agent, _ in agents:
                 row = _lookup(summary, agent, track, variant)
-                values[agent] = None if row is None else float(row["success_rate"])
-            for agent in _best(values, privileged, lower_is_better=False):
+                if row is not None and not privileged[agent]:
+                    intervals[agent] = _interval(row, lap_time=False)
+            for agent in _best(intervals, lower_is_better=False):
                 bold.add((label, f"{_agent_label(agent, privileged[agent])} {TRACK_NAMES[track]}"))
     return pd.DataFrame(columns, index=[label for label, _ in variants]), bold
 
@@ -123,7 +142,7 @@ def render(frame: pd.DataFrame, bold: set, fmt: str, caption: str) -> str:
             value = str(cells.loc[row, col])
             cells.loc[row, col] = f"**{value}**" if fmt == "md" else rf"\textbf{{{_latex_escape(value)}}}"
     if fmt == "md":
-        return f"**{caption}**\n\n" + cells.to_markdown() + "\n"
+        return f"**{caption}**\n\n" + cells.to_markdown(disable_numparse=True) + "\n"
     escaped = cells.map(lambda v: v if str(v).startswith(r"\textbf") else _latex_escape(str(v)))
     escaped.index = [_latex_escape(str(i)) for i in escaped.index]
     escaped.columns = [_latex_escape(str(c)) for c in escaped.columns]
@@ -149,5 +168,5 @@ def make_table(summary: pd.DataFrame, which: str, fmt: str = "md", ci: bool = Tr
         raise ValueError(f"no results for Table {which} in the given summaries")
     if ci:
         caption += " SR in % with 95% Wilson interval in brackets."
-    caption += " Bold: best non-privileged agent."
+    caption += " Bold: a non-privileged agent whose 95% interval lies entirely beyond every other's."
     return render(frame, bold, fmt, caption)

@@ -24,6 +24,7 @@ from racebench.evaluation import (
     Evaluator,
     eval_seeds,
     load_records,
+    read_summaries,
     resolve_envs,
     split_env_id,
     wilson_interval,
@@ -278,6 +279,26 @@ DATA = Path(__file__).parent / "data"
 FIXED_SUMMARY = DATA / "summary_fixed.csv"
 
 
+def test_tables_bold_only_where_95_percent_intervals_separate() -> None:
+    """10/10 against 9/10 is not a result (Wilson [72–100] meets [60–98]); 10/10 against 2/10 is. Lap times:
+    bold only where Student's t intervals of the means separate."""
+    from racebench.statistics import wilson_interval
+
+    def row(agent: str, k: int, lap: float, std: float, privileged: bool = False) -> dict:
+        low, high = wilson_interval(k, 10)
+        return {"agent": agent, "privileged": privileged, "env_id": "RaceObs-S-v0", "track": "S", "variant": "default",
+                "n": 10, "successes": k, "success_rate": k / 10, "sr_ci_low": low, "sr_ci_high": high,
+                "lap_time_median": lap, "lap_time_mean": lap, "lap_time_std": std}  # fmt: skip
+
+    close = make_table(pd.DataFrame([row("a", 10, 3.0, 0.5), row("b", 9, 3.1, 0.5)]), "II")
+    assert "**" not in close.split("\n", 1)[1]  # nothing bold below the caption
+    apart = make_table(
+        pd.DataFrame([row("a", 10, 3.0, 0.05), row("b", 2, 4.0, 0.05), row("p", 10, 1.0, 0.01, True)]), "II"
+    )
+    bold = [cell.strip() for line in apart.splitlines()[4:] for cell in line.split("|") if "**" in cell]
+    assert bold == ["**3.00**", "**100 [72–100]**"]  # a's lap and SR; the privileged p's faster lap never
+
+
 def test_table_ii_from_a_fixed_csv() -> None:
     expected = (DATA / "table_ii_expected.md").read_text()
     assert make_table(pd.read_csv(FIXED_SUMMARY), "II", "md", ci=False) == expected
@@ -481,3 +502,14 @@ def test_the_gru_checkpoint_exports_to_onnx_and_flies_the_same(tmp_path: Path) -
         if terminated or truncated:
             break
     env.close()
+
+
+def test_one_label_on_several_policies_gets_each_directorys_name(tmp_path: Path, caplog) -> None:
+    """Three per-track students all labelled "vision-dagger" must not share one table row."""
+    env = "RaceObs-S-Level1-v0"
+    for agent, out in (("hover", tmp_path / "a" / "eval"), ("random", tmp_path / "b")):
+        Evaluator(agent, [env], episodes=1, out_dir=out, agent_name="same").run(progress=False)
+    Evaluator("hover", [env], episodes=1, out_dir=tmp_path / "c", agent_name="other").run(progress=False)
+    summary = read_summaries([tmp_path / "a" / "eval", tmp_path / "b", tmp_path / "c"])
+    assert sorted(summary["agent"]) == ["other", "same (a)", "same (b)"]
+    assert "name several policies" in caplog.text
