@@ -224,6 +224,27 @@ def test_entry_pages_show_trajectory_plots_and_on_demand_videos(tmp_path: Path, 
         assert (with_videos.parent / "entries" / ref).resolve().is_file(), ref
 
 
+def test_the_ranking_weighs_each_track_the_same(tmp_path: Path) -> None:
+    """100/100 on its own track and 0/10 elsewhere (pooled 83 %, mean 33 %) ranks below 5/10 everywhere (50 %)."""
+    board = make_repo(tmp_path)
+    res = tmp_path / "results"
+    for name in ("own", "even"):
+        (tmp_path / f"{name}.py").write_text(GC_AGENT.replace("Sneaky", name.capitalize()))
+    own, even = (f"{tmp_path / n}.py:{n.capitalize()}" for n in ("own", "even"))
+    write_records(res / "own", own, MAIN_IDS[0], 100, 100, lap=3.0)  # laps 3.0-12.9 s: inside the time limit
+    for env_id in MAIN_IDS:
+        if env_id != MAIN_IDS[0]:
+            write_records(res / "own", own, env_id, 0, 10)
+        write_records(res / "even", even, env_id, 5, 10)
+    add(board, own, "own", [res / "own"])
+    add(board, even, "even", [res / "even"])
+    out = tmp_path / "site"
+    assert cli.main(["leaderboard", "build", "--leaderboard", str(board), "--out", str(out)]) == 0
+    ranked = parse(out / "index.html").tables["ranking-self-reported"][1:]
+    assert [row[1][0].split()[0] for row in ranked] == ["even", "own"]
+    assert ranked[1][5][0].endswith("100/120")  # the pooled column still shows every episode
+
+
 def parse_html(text: str) -> list:
     """The rows of the single table in an HTML fragment."""
     page = Page()

@@ -7,8 +7,9 @@ embedded in ``index.html`` as JSON (``<script type="application/json" id="leader
 does not execute) for anyone who wants the numbers without parsing tables. The build is deterministic: no
 timestamps, a fixed bootstrap seed.
 
-Ranking, within a tier: the success rate over the three main ids (episodes pooled), then the mean lap time
-over their successful laps. Entries flown on fewer of the three ids (per-track policies) are listed below,
+Ranking, within a tier: the mean over the three main ids of the per-track success rate (each track weighs the
+same, even for an entry flown on more episodes of its own track), then the mean lap time over their successful
+laps. Entries flown on fewer of the three ids (per-track policies) are listed below,
 unranked: success on an id never flown is unknown, not zero. Success rates are shown as ``k/n``, percentage
 and 95 % Wilson interval; a cell is bold only when its interval lies entirely above the interval of every
 other entry of its tier in that column (the pooled column: of every other ranked entry).
@@ -100,16 +101,19 @@ def pooled(cells: dict[str, Cell]) -> Cell | None:
 
 
 def rank(entries: Sequence[Entry], accepted: Sequence[str]) -> list[Entry]:
-    """Entries in order: more main ids covered, then pooled success rate, then mean lap time, then name."""
+    """Entries in order: more main ids covered, then the mean over those ids of the success rate (each track
+    weighs the same even where an entry flew more episodes on one, e.g. its own), then the pooled mean lap time,
+    then the name."""
 
     def key(entry: Entry) -> tuple[float, float, float]:
         cells = entry.cells(accepted)
         main = pooled(cells)
-        covered = sum(i in cells for i in MAIN_IDS)
+        covered = [cells[i] for i in MAIN_IDS if i in cells]
         if main is None:
             return (0, 0.0, math.inf)
         lap = main.lap_time_mean
-        return (-covered, -main.success_rate, lap if not math.isnan(lap) else math.inf)
+        mean_sr = sum(c.success_rate for c in covered) / len(covered)
+        return (-len(covered), -mean_sr, lap if not math.isnan(lap) else math.inf)
 
     return sorted(entries, key=lambda e: (*key(e), e.name))
 
@@ -548,8 +552,8 @@ def build_site(leaderboard: str | Path, out: str | Path, videos: bool = False, t
         "<h1>racebench leaderboard</h1>\n"
         f'<p class="lead">{len(entries)} entries · env version {ENV_VERSION} · racebench '
         f"{_esc(racebench.__version__)} · main ids: {', '.join(MAIN_IDS)}</p>\n"
-        "<p>Ranking within a tier: the success rate over the three main ids (pooled episodes), then the mean lap"
-        " time of their successful laps. Entries flown on fewer of the three are listed unranked below it (success"
+        "<p>Ranking within a tier: the success rate over the three main ids (the mean of the three per-track rates,"
+        " so each track weighs the same), then the mean lap time of their successful laps. Entries flown on fewer of the three are listed unranked below it (success"
         " on an id never flown is unknown, not zero). SR cells: percentage, 95 % Wilson interval,"
         " successes/episodes. <b>Bold</b> only where an entry's interval lies entirely above every other entry's of"
         " its tier in that column (pooled column: every other ranked entry's).</p>\n"
