@@ -22,9 +22,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p_add.add_argument(
         "--evaluate",
         type=int,
-        default=0,
+        default=None,
         metavar="EPISODES",
-        help="first evaluate on the main suite's public seeds, EPISODES per id (50 for a submission)",
+        help="first evaluate on the main suite's public seeds, EPISODES per id (default: 50 without --records, else 0)",
     )
     p_add.add_argument("--workers", type=int, default=1, help="evaluation processes for --evaluate (default 1)")
     p_add.add_argument("--trust-code", action="store_true", help="allow a .zip or Python policy (runs its code)")
@@ -65,8 +65,9 @@ def run(args: argparse.Namespace) -> int:
                 meta = yaml.safe_load(Path(args.meta).read_text())
             except (OSError, yaml.YAMLError) as exc:
                 raise EntryError(f"--meta {args.meta!r}: unreadable ({exc})") from exc
+            episodes = args.evaluate if args.evaluate is not None else (0 if args.records else 50)
             entry = add_entry(
-                args.leaderboard, args.policy, meta, args.records, evaluate_episodes=args.evaluate,
+                args.leaderboard, args.policy, meta, args.records, evaluate_episodes=episodes,
                 trust_code=args.trust_code, workers=args.workers,
             )  # fmt: skip
             tier = entry.tier(load_config(args.leaderboard)["private_salt_sha256"])

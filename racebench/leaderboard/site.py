@@ -553,8 +553,9 @@ def build_site(leaderboard: str | Path, out: str | Path, videos: bool = False, t
         f'<p class="lead">{len(entries)} entries · env version {ENV_VERSION} · racebench '
         f"{_esc(racebench.__version__)} · main ids: {', '.join(MAIN_IDS)}</p>\n"
         "<p>Ranking within a tier: the success rate over the three main ids (the mean of the three per-track rates,"
-        " so each track weighs the same), then the mean lap time of their successful laps. Entries flown on fewer of the three are listed unranked below it (success"
-        " on an id never flown is unknown, not zero). SR cells: percentage, 95 % Wilson interval,"
+        " so each track weighs the same), then the mean lap time of their successful laps. Entries flown on fewer"
+        " of the three are listed unranked below it (success on an id never flown is unknown, not zero)."
+        " SR cells: percentage, 95 % Wilson interval,"
         " successes/episodes. <b>Bold</b> only where an entry's interval lies entirely above every other entry's of"
         " its tier in that column (pooled column: every other ranked entry's).</p>\n"
         + "\n".join(sections)
