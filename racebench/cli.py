@@ -178,7 +178,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_train.add_argument("--seed", type=int, default=0, help="training seed (< 1,000,000: evaluation seeds are above)")
     p_train.add_argument("--out", default=None, help="run directory (default runs/<name>-<track>-seed<seed>)")
-    p_train.add_argument("--resume", default=None, help="checkpoint .zip to continue from")
+    p_train.add_argument(
+        "--resume", default=None, help="checkpoint .zip to continue from (a DAgger config: its run folder)"
+    )
     p_train.add_argument("--n-envs", type=int, default=None, help="override the config's n_envs")
     p_train.add_argument(
         "--num-processes",
@@ -284,23 +286,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         env.close()
         log.info(f"wrote {path} and {json_path}")
     elif args.command == "train":
-        from racebench.training.train import TrainConfig, resolve_device, train
+        from racebench.training.dagger import DaggerConfig
+        from racebench.training.train import load_config, resolve_device, run_training
 
         try:
-            config = TrainConfig.from_yaml(args.config)
+            config = load_config(args.config)
             if args.n_envs is not None:
                 config.n_envs = args.n_envs
-            if args.num_processes is not None:
+            if args.num_processes is not None and not isinstance(config, DaggerConfig):
                 config.num_processes = args.num_processes
+            if args.num_processes is not None:
                 config.update_threads = args.num_processes  # as many learner threads as cores it was given
             config.validate(f"{args.config} with the command-line overrides")
             resolve_device(args.device)
+            result = run_training(
+                config, args.track, args.steps, args.seed, args.out, args.resume,
+                eval_episodes=args.eval_episodes, device=args.device,
+            )  # fmt: skip
         except (OSError, ValueError) as exc:
             raise SystemExit(f"racebench train: {exc}") from exc
-        result = train(
-            config, args.track, args.steps, args.seed, args.out, args.resume,
-            eval_episodes=args.eval_episodes, device=args.device,
-        )  # fmt: skip
         print(json.dumps(result, indent=2))
     elif args.command == "export-onnx":
         from racebench.agents import AgentLoadError, SB3Agent, export_onnx

@@ -4,7 +4,7 @@ A sweep file (YAML, loaded with ``yaml.safe_load``; ``baselines/sweeps/paper-tab
 
     name: tiny                      # default: the file's stem
     out: runs/sweeps/tiny           # default: runs/sweeps/<name>
-    configs:                        # built-in baseline names or YAML files (relative to the sweep file)
+    configs:                        # built-in names or YAML files (relative to the sweep file), PPO or DAgger
       - state-ppo
       - {config: vision-ppo, overrides: {n_envs: 32}}   # overrides of this config only
     tracks: [S, J]
@@ -58,7 +58,7 @@ _CHECKPOINT = re.compile(r"^(?P<prefix>.+)_(?P<steps>\d+)_steps\.zip$")
 class SweepRun:
     """One run of a sweep: everything its job needs, picklable (it travels to a Ray worker)."""
 
-    config: Any  # racebench.training.train.TrainConfig (not imported here: it pulls in torch)
+    config: Any  # TrainConfig or DaggerConfig (racebench.training.train.load_config; not imported here: torch)
     track: str
     seed: int
     steps: int
@@ -85,7 +85,7 @@ class Sweep:
 
 
 def _load_config(entry: Any, base: Path, overrides: dict[str, Any], source: str) -> Any:
-    from racebench.training.train import BASELINES, TrainConfig
+    from racebench.training.train import BASELINES, load_config
 
     if isinstance(entry, str):
         entry = {"config": entry}
@@ -93,7 +93,7 @@ def _load_config(entry: Any, base: Path, overrides: dict[str, Any], source: str)
         raise ValueError(f"{source}: each configs entry is a name/file or {{config: ..., overrides: {{...}}}}")
     name = str(entry["config"])
     path = name if name in BASELINES or Path(name).is_absolute() else str(base / name)
-    config = TrainConfig.from_yaml(path)
+    config = load_config(path)
     own = entry.get("overrides") or {}
     if not isinstance(own, dict):
         raise ValueError(f"{source}: overrides of {name!r} must be a mapping")
@@ -106,7 +106,7 @@ def _load_config(entry: Any, base: Path, overrides: dict[str, Any], source: str)
         if key in changes:
             changes[key] = tuple(changes[key])
     config = dataclasses.replace(config, **changes)
-    if "num_processes" in changes and "update_threads" not in changes:
+    if "num_processes" in changes and "update_threads" not in changes and hasattr(config, "n_steps"):
         config.update_threads = config.num_processes  # as `racebench train --num-processes` does
     config.validate(f"{source}: {name} with its overrides")
     return config
@@ -210,16 +210,20 @@ def run_job(run: SweepRun) -> dict[str, Any]:
     timesteps, success rate.
     """
     from racebench.evaluation import Evaluator
-    from racebench.training.train import _plain, train
+    from racebench.training.train import _plain, run_training
 
     row = {"run": run.label, "config": run.config.name, "track": run.track, "seed": run.seed}
     summary_path = run.out / "summary.json"
     if is_finished(run):
         return {**row, **_outcome(json.loads(summary_path.read_text())), "status": "skipped"}
     if not summary_path.exists():  # training not finished (train writes summary.json last)
-        checkpoint, done = latest_checkpoint(run.out, run.config.name)
-        train(
-            run.config, run.track, max(run.steps - done, 0), run.seed, run.out, resume=checkpoint,
+        if hasattr(run.config, "n_steps"):  # PPO: from the newest periodic checkpoint, the steps still to go
+            checkpoint, done = latest_checkpoint(run.out, run.config.name)
+            steps = max(run.steps - done, 0)
+        else:  # DAgger: its whole state after the last finished iteration, kept in the run folder
+            checkpoint, steps = (run.out if (run.out / "resume").is_dir() else None), run.steps
+        run_training(
+            run.config, run.track, steps, run.seed, run.out, resume=checkpoint,
             checkpoint_every=run.checkpoint_every, eval_episodes=0, device=run.device,
         )  # fmt: skip
     summary = json.loads(summary_path.read_text())

@@ -121,6 +121,38 @@ def test_a_local_sweep_finishes_is_skipped_when_rerun_and_resumes_a_killed_run(
     check_finished(out, RUNS)
 
 
+def test_a_sweep_runs_a_dagger_config_and_resumes_it_from_its_folder(tmp_path: Path) -> None:
+    """A ``method: dagger`` config in a sweep: trained, evaluated, skipped when finished, resumed when killed."""
+    (tmp_path / "distill.yaml").write_text(
+        "method: dagger\nname: distill\nsteps_per_iteration: 128\nn_envs: 4\nepochs: 1\nbatch_size: 64\n"
+    )
+    sweep = {"name": "d", "out": str(tmp_path / "out"), "configs": ["distill.yaml"], "tracks": ["S"], "seeds": [1],
+             "steps": 256, "eval_episodes": 1}  # fmt: skip
+    path = tmp_path / "d.yaml"
+    path.write_text(json.dumps(sweep))
+    loaded = load_sweep(path)
+    assert loaded.runs[0].cpus == 2.0  # update_threads: the CPUs a DAgger run uses
+    assert [row["status"] for row in run_sweep(loaded)] == ["done"]
+    run = tmp_path / "out" / "distill-S-seed1"
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["timesteps"] == 256 and summary["eval"]["n"] == 1 and summary["config"]["seed"] == 1
+    assert [row["status"] for row in run_sweep(load_sweep(path))] == ["skipped"]
+    # Killed after its first iteration: the run's state says iteration 0; the sweep runs only iteration 1.
+    import shutil
+
+    from racebench.training.dagger import DaggerConfig, distill
+
+    shutil.rmtree(tmp_path / "out")
+    first = DaggerConfig(name="distill", track="S", seed=1, iterations=1, steps_per_iteration=128, n_envs=4,
+                         epochs=1, batch_size=64)  # fmt: skip
+    distill(first, run, eval_episodes=0)
+    (run / "summary.json").unlink()  # as if killed before the run ended
+    assert [row["status"] for row in run_sweep(load_sweep(path))] == ["done"]
+    progress = pd.read_csv(run / "progress.csv")
+    assert progress["iteration"].tolist() == [0, 1]
+    assert json.loads((run / "summary.json").read_text())["eval"]["n"] == 1
+
+
 @pytest.mark.ray
 def test_a_ray_sweep_finishes_and_is_skipped_when_rerun(ray_cluster, tmp_path: Path) -> None:
     path = write_sweep(tmp_path)

@@ -27,6 +27,7 @@ from racebench.training.train import (
     TrainConfig,
     _restore_reward_stats,
     _save_atomically,
+    load_config,
     make_envs,
     make_model,
     resume_curriculum,
@@ -43,10 +44,10 @@ def small(config: TrainConfig, **changes) -> TrainConfig:
 
 
 def test_every_baseline_config_loads() -> None:
-    names = {TrainConfig.from_yaml(p).name for p in BASELINES}
+    names = {load_config(p).name for p in BASELINES}
     assert names == {
         "vision-ppo", "state-ppo", "vision-no-gru", "vision-no-avoid", "vision-one-step", "vision-com",
-        "vision-ppo-fast",
+        "vision-ppo-fast", "vision-distill",
     }  # fmt: skip
     assert TrainConfig.from_yaml(BASELINES[0].parent / "vision-no-avoid.yaml").level_kwargs(3)["reward_weights"] == {
         "speed": 0.0,
@@ -366,7 +367,7 @@ def test_the_fast_variant_differs_from_the_paper_config_only_by_its_two_switches
 
 
 def test_builtin_baseline_names_resolve_and_unknown_ones_are_named() -> None:
-    assert {TrainConfig.from_yaml(name).name for name in BASELINE_NAMES} == set(BASELINE_NAMES)
+    assert {load_config(name).name for name in BASELINE_NAMES} == set(BASELINE_NAMES)
     with pytest.raises(ValueError, match="neither a built-in baseline"):
         TrainConfig.from_yaml("vision-ppo-typo")
 
@@ -464,3 +465,29 @@ def test_resume_curriculum_from_progress_alone(tmp_path: Path) -> None:
     assert resume_curriculum(tmp_path, 350, 1) == (2, [{"level": 2, "timestep": 200}])
     assert resume_curriculum(tmp_path, 400, 1) == (3, [{"level": 2, "timestep": 200}, {"level": 3, "timestep": 400}])
     assert resume_curriculum(tmp_path / "nothing", 400, 1) == (1, [])
+
+
+def test_a_dagger_config_trains_through_racebench_train_and_resumes_from_its_folder(tmp_path: Path) -> None:
+    """``method: dagger`` configs run like the PPO baselines: ``racebench train --config``, a run folder, resume."""
+    from racebench import cli
+    from racebench.training.dagger import DaggerConfig
+
+    shipped = load_config("vision-distill")
+    assert isinstance(shipped, DaggerConfig) and shipped.teacher == "planner-fast" and shipped.name == "vision-distill"
+    with pytest.raises(ValueError, match="load_config"):
+        TrainConfig.from_yaml("vision-distill")  # not a PPO config: named, with where to load it
+    config = tmp_path / "tiny-distill.yaml"
+    config.write_text("method: dagger\nname: tiny-distill\nsteps_per_iteration: 128\nn_envs: 4\nepochs: 1\n"
+                      "batch_size: 64\n")  # fmt: skip
+    out = tmp_path / "run"
+    args = ["train", "--config", str(config), "--steps", "128", "--out", str(out), "--eval-episodes", "0"]
+    assert cli.main(args) == 0
+    assert json.loads((out / "summary.json").read_text())["timesteps"] == 128 and (out / "tiny-distill-S.zip").is_file()
+    assert cli.main([*args[:4], "256", *args[5:], "--resume", str(out)]) == 0  # one more iteration, resumed
+    progress = pd.read_csv(out / "progress.csv")
+    assert progress["iteration"].tolist() == [0, 1] and progress["samples"].tolist() == [128, 256]
+    with pytest.raises(SystemExit, match="resumes from its own folder"):
+        cli.main([*args, "--resume", str(tmp_path / "elsewhere")])
+    (tmp_path / "bad.yaml").write_text("method: dagger\nname: bad\nbeta_decay: 3\n")
+    with pytest.raises(SystemExit, match="beta_decay"):
+        cli.main(["train", "--config", str(tmp_path / "bad.yaml")])

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -43,8 +43,14 @@ TEACHERS: tuple[str, ...] = ("planner-fast", "planner")  # privileged built-ins 
 
 @dataclass
 class DaggerConfig:
-    """Settings of one distillation run (all recorded in the run's ``summary.json``)."""
+    """Settings of one distillation run (all recorded in the run's ``summary.json``).
 
+    Also a training config: a YAML file with ``method: dagger`` (``baselines/vision-distill.yaml``) is loaded
+    by :func:`racebench.training.train.load_config`, so ``racebench train --config`` and ``racebench sweep``
+    run it like the PPO baselines (same run folder, resume and final evaluation).
+    """
+
+    name: str = "vision-dagger"  # the run's name: checkpoint <name>-<track>.zip, sweep folders, table labels
     track: str = "S"
     env_id: str = ""  # default: RaceObs-<track>-v0, the evaluation task (density 3, v_d 8 m/s)
     iterations: int = 8
@@ -60,7 +66,28 @@ class DaggerConfig:
     update_threads: int = 2
     teacher: str = "planner-fast"  # a privileged built-in: "planner-fast" (the fast expert) or "planner"
 
-    def validate(self) -> None:
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> DaggerConfig:
+        """Load a ``method: dagger`` YAML config (``yaml.safe_load``; unknown keys are errors)."""
+        import yaml
+
+        data = yaml.safe_load(Path(path).read_text())
+        if not isinstance(data, dict) or data.pop("method", None) != "dagger":
+            raise ValueError(f"{path}: not a DAgger config (expected a mapping with method: dagger)")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"{path}: unknown key {unknown[0]!r} (known: {sorted(known)})")
+        config = cls(**data)
+        config.validate(str(path))
+        return config
+
+    @property
+    def num_processes(self) -> int:
+        """CPUs a run uses (a sweep reserves them): one process, ``update_threads`` threads while fitting."""
+        return self.update_threads
+
+    def validate(self, source: str = "dagger") -> None:
         """Raise ``ValueError`` naming the first bad setting."""
         checks = [
             (self.iterations >= 1, "iterations must be >= 1"),
@@ -72,9 +99,10 @@ class DaggerConfig:
             (0 <= self.seed < EVAL_SEED_BASE, f"seed must be in [0, {EVAL_SEED_BASE})"),
             (self.teacher in TEACHERS, f"teacher must be one of {TEACHERS}, got {self.teacher!r}"),
         ]
+        checks.append((self.update_threads >= 1, "update_threads must be >= 1"))
         for ok, message in checks:
             if not ok:
-                raise ValueError(f"dagger: {message}")
+                raise ValueError(f"{source}: {message}")
 
 
 class Dataset:
@@ -313,11 +341,11 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
                      "wall_s": round(time.perf_counter() - started, 1)})  # fmt: skip
         atomic_write(out / "progress.csv", pd.DataFrame(rows).to_csv(index=False))
         # The student after every iteration, so a killed run leaves its latest policy behind.
-        policy_model.save(out / f"vision-dagger-{config.track}.zip")
+        policy_model.save(out / f"{config.name}-{config.track}.zip")
         save_resume_state(out, k, policy_model, optimizer, dataset, rng, seeds, rows, config)
     for m in made:
         m.close()
-    checkpoint = out / f"vision-dagger-{config.track}.zip"
+    checkpoint = out / f"{config.name}-{config.track}.zip"
     summary: dict[str, Any] = {
         "method": "dagger",
         "teacher": config.teacher,
@@ -325,6 +353,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         "checkpoint": str(checkpoint),
         "wall_s": round(time.perf_counter() - started, 1),
         "env_steps": config.iterations * config.steps_per_iteration,
+        "timesteps": config.iterations * config.steps_per_iteration,  # as a PPO run's summary.json says it
         "last": rows[-1],
     }
     if eval_episodes > 0:

@@ -24,6 +24,7 @@ The whole algorithm is here:
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import time
@@ -57,6 +58,7 @@ BASELINES: tuple[str, ...] = (
     "vision-one-step",
     "vision-com",
     "vision-ppo-fast",
+    "vision-distill",
 )
 
 
@@ -70,6 +72,39 @@ def baseline_path(name_or_path: str | Path) -> Path:
             f"config {str(name_or_path)!r} is neither a built-in baseline {BASELINES} nor an existing file"
         )
     return path
+
+
+def load_config(name_or_path: str | Path) -> Any:
+    """A training config by built-in name or YAML path: :class:`TrainConfig` (PPO, the default ``method``) or,
+    for ``method: dagger``, :class:`racebench.training.dagger.DaggerConfig`."""
+    path = baseline_path(name_or_path)
+    data = yaml.safe_load(path.read_text())
+    if isinstance(data, dict) and data.get("method", "ppo") == "dagger":
+        from racebench.training.dagger import DaggerConfig
+
+        return DaggerConfig.from_yaml(path)
+    return TrainConfig.from_yaml(path)
+
+
+def run_training(
+    config: Any, track: str, steps: int, seed: int, out: str | Path | None, resume: str | Path | None = None,
+    eval_episodes: int = 10, device: str = "auto", checkpoint_every: int = 50_000,
+) -> dict[str, Any]:  # fmt: skip
+    """Train ``config`` (from :func:`load_config`) on ``track``: PPO through :func:`train`, DAgger through
+    :func:`racebench.training.dagger.distill` with ``ceil(steps / steps_per_iteration)`` iterations, resumed
+    from its run folder when ``resume`` is given (a DAgger run keeps its whole state there, not in a zip)."""
+    from racebench.training.dagger import DaggerConfig, distill
+
+    if not isinstance(config, DaggerConfig):
+        return train(config, track, steps, seed, out, resume, checkpoint_every=checkpoint_every,
+                     eval_episodes=eval_episodes, device=device)  # fmt: skip
+    iterations = max(1, -(-steps // config.steps_per_iteration))
+    config = dataclasses.replace(config, track=track, seed=seed, iterations=iterations)
+    config.validate(config.name)
+    folder = Path(out) if out is not None else Path("runs") / f"{config.name}-{track}-seed{seed}"
+    if resume is not None and Path(resume).resolve() != folder.resolve():
+        raise ValueError(f"a DAgger run resumes from its own folder: pass --resume {folder} (or the same --out)")
+    return distill(config, folder, eval_episodes=eval_episodes, resume=resume is not None)
 
 
 @dataclass
@@ -123,6 +158,9 @@ class TrainConfig:
         data = yaml.safe_load(path.read_text())
         if not isinstance(data, dict):
             raise ValueError(f"{path}: expected a mapping at the top level")
+        method = data.pop("method", "ppo")
+        if method != "ppo":
+            raise ValueError(f"{path}: method {method!r} is not PPO: load it with racebench.training.train.load_config")
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
