@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -78,3 +79,45 @@ def test_readme_first_python_snippet_runs_as_written(tmp_path, monkeypatch, caps
     exec(compile(code, "README.md", "exec"), {"__name__": "__readme__"})
     assert (tmp_path / "scene.glb").stat().st_size > 1000
     assert "prog" in capsys.readouterr().out  # the reward terms it prints
+
+
+def test_the_ab_report_reads_run_folders_and_applies_the_stated_rule(tmp_path) -> None:
+    """baselines/ab_report.py: rows from a sweep's run folders; the decision only with 3 finished runs per arm."""
+    import json
+
+    spec = importlib.util.spec_from_file_location("ab_report", ROOT / "baselines" / "ab_report.py")
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+
+    def run(name: str, to_l3: int, successes: int, finished: bool = True) -> None:
+        folder = tmp_path / name
+        folder.mkdir()
+        promotions = [{"level": 2, "timestep": to_l3 // 2, "wall_s": 60.0, "by": "bar"},
+                      {"level": 3, "timestep": to_l3, "wall_s": 120.0, "by": "bar"}]  # fmt: skip
+        (folder / "curriculum.json").write_text(json.dumps({"level": 3, "promotions": promotions, "solved": None}))
+        (folder / "progress.csv").write_text("timesteps,success_rate,level,samples_per_s\n4000000,0.7,3,900\n")
+        if finished:
+            evaluation = {"n": 50, "successes": successes, "success_rate": successes / 50, "lap_time_mean": 4.0}
+            (folder / "summary.json").write_text(json.dumps({"timesteps": 4000000, "eval": evaluation}))
+
+    for seed, (a, b) in enumerate([(35, 34), (36, 33), (34, 36)]):
+        run(f"vision-ppo-S-seed{seed}", 2_000_000, a)
+        run(f"vision-ppo-fast-S-seed{seed}", 1_900_000, b, finished=seed < 2)
+    table = pd.DataFrame([report.run_row(p) for p in sorted(tmp_path.iterdir())])
+    assert "no decision yet" in report.decide(table, "vision-ppo", "vision-ppo-fast")  # 2 of 3 finished
+    run_row = table.set_index("run").loc["vision-ppo-S-seed0"]
+    assert run_row["steps_to_L3"] == 2_000_000 and run_row["eval_ci"].startswith("[")
+    run("extra", 0, 0)  # not an arm's run: ignored
+    (tmp_path / "vision-ppo-fast-S-seed2" / "summary.json").write_text(
+        json.dumps(
+            {"timesteps": 4000000, "eval": {"n": 50, "successes": 36, "success_rate": 0.72, "lap_time_mean": 4.0}}
+        )
+    )
+    table = pd.DataFrame([report.run_row(p) for p in sorted(tmp_path.iterdir())])
+    # Means 70 % vs 68.7 %, spreads 4 and 6 points: within; 1.9M steps to level 3 vs 2.0M: not higher.
+    assert report.decide(table, "vision-ppo", "vision-ppo-fast").endswith("vision-ppo-fast becomes the default")
+    for seed in range(3):  # the variant now needs more steps to level 3: it stays a variant
+        state = tmp_path / f"vision-ppo-fast-S-seed{seed}" / "curriculum.json"
+        state.write_text(state.read_text().replace("1900000", "2100000"))
+    table = pd.DataFrame([report.run_row(p) for p in sorted(tmp_path.iterdir())])
+    assert report.decide(table, "vision-ppo", "vision-ppo-fast").endswith("stays a named variant")
