@@ -1,5 +1,6 @@
-"""The A/B table of a training sweep: per run and per arm, time to each curriculum promotion, level-3 training
-success, evaluation success with its Wilson interval, and the decision rule of ``ab-fast-update.yaml``.
+"""The A/B table of a training sweep: per run, steps and wall clock to each curriculum promotion, the training
+success of the last update at the highest level reached, evaluation success with its Wilson interval, and the
+decision rule of ``ab-fast-update.yaml``.
 
     python baselines/ab_report.py runs/sweeps/ab-fast-update [--baseline vision-ppo --variant vision-ppo-fast]
         [--out baselines/experiments/ab-fast-update.md]

@@ -457,6 +457,10 @@ def _is_gaussian_actor_critic(policy: Any) -> bool:
 
     if not isinstance(policy, ActorCriticPolicy) or type(policy.action_dist) is not DiagGaussianDistribution:
         return False
+    # Only classes whose forward pass is known: SB3's, sb3-contrib's and racebench's own GRU policy. A user's
+    # subclass may override _predict or the sequence pass, and must then be run through them.
+    if not type(policy).__module__.startswith(("stable_baselines3.", "sb3_contrib.", "racebench.training.")):
+        return False
     if policy.squash_output or getattr(policy, "shared_lstm", False):
         return False
     if not hasattr(policy.mlp_extractor, "forward_actor"):

@@ -543,17 +543,26 @@ def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
     if not loaded:
         raise ValueError("no result directories given")
     # One label, several policies (e.g. three per-track students all labelled "vision-dagger"): their rows would
-    # be one agent's in a table. Such labels get their directory's name (its parent's for ".../eval").
+    # be one agent's in a table. Each such policy gets the name of the first directory holding it (its parent's
+    # for ".../eval"), in every directory it appears in.
     policies: dict[str, set[str]] = {}
     for _, episodes in loaded:
         for agent, group in episodes.groupby("agent"):
             policies.setdefault(str(agent), set()).update(group["policy_sha256"].astype(str))
     shared = {agent for agent, hashes in policies.items() if len(hashes) > 1}
-    frames = []
+    renamed: dict[tuple[str, str], str] = {}  # (label, policy) -> label (its first directory's name)
     for path, episodes in loaded:
+        where = path.parent.name if path.name == "eval" else path.name
+        for agent, policy in zip(episodes["agent"], episodes["policy_sha256"].astype(str), strict=True):
+            if agent in shared:
+                renamed.setdefault((agent, policy), f"{agent} ({where})")
+    if len(set(renamed.values())) < len(renamed):
+        raise ValueError("several policies share a label and a directory name: give them distinct --name labels")
+    frames = []
+    for _, episodes in loaded:
         if shared & set(episodes["agent"]):
-            where = path.parent.name if path.name == "eval" else path.name
-            episodes = episodes.assign(agent=[f"{a} ({where})" if a in shared else a for a in episodes["agent"]])
+            pairs = zip(episodes["agent"], episodes["policy_sha256"].astype(str), strict=True)
+            episodes = episodes.assign(agent=[renamed.get((a, h), a) for a, h in pairs])
         frames.append(summarize(episodes))
     if shared:
         logger.warning("the label(s) %s name several policies: each row is labelled with its directory",

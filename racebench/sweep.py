@@ -102,9 +102,9 @@ def _load_config(entry: Any, base: Path, overrides: dict[str, Any], source: str)
     unknown = sorted(set(changes) - known)
     if unknown:
         raise ValueError(f"{source}: override {unknown[0]!r} of {name!r} is not a config key")
-    for key in ("start_spread", "learning_rate", "net_arch"):
-        if key in changes:
-            changes[key] = tuple(changes[key])
+    tuples = {f.name for f in dataclasses.fields(config) if str(f.type).startswith("tuple")}
+    for key in tuples & set(changes):  # YAML lists → the config's tuples (TrainConfig's; DaggerConfig has none)
+        changes[key] = tuple(changes[key])
     config = dataclasses.replace(config, **changes)
     if "num_processes" in changes and "update_threads" not in changes and hasattr(config, "n_steps"):
         config.update_threads = config.num_processes  # as `racebench train --num-processes` does
@@ -221,7 +221,11 @@ def run_job(run: SweepRun) -> dict[str, Any]:
             checkpoint, done = latest_checkpoint(run.out, run.config.name)
             steps = max(run.steps - done, 0)
         else:  # DAgger: its whole state after the last finished iteration, kept in the run folder
-            checkpoint, steps = (run.out if (run.out / "resume").is_dir() else None), run.steps
+            from racebench.training.dagger import completed_iterations, resume_folder
+
+            done = completed_iterations(run.out) * run.config.steps_per_iteration
+            checkpoint = run.out if resume_folder(run.out) is not None else None
+            steps = max(run.steps - done, 0) if checkpoint is not None else run.steps
         run_training(
             run.config, run.track, steps, run.seed, run.out, resume=checkpoint,
             checkpoint_every=run.checkpoint_every, eval_episodes=0, device=run.device,

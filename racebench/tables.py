@@ -93,7 +93,11 @@ def table_ii(summary: pd.DataFrame, ci: bool = True, lap_time: bool = True) -> t
             col = f"{title} {TRACK_NAMES[track]}"
             rows = {a: _lookup(summary, a, track, "default") for a, _ in agents}
             columns[col] = {a: (_lt_text(r) if is_lt else _sr_text(r, ci)) for a, r in rows.items()}
-            intervals = {a: _interval(r, is_lt) for a, r in rows.items() if r is not None and not privileged[a]}
+            # Lap times compare agents that finished laps; a success rate compares every agent flown.
+            flown = {a: r for a, r in rows.items() if r is not None and not privileged[a]}
+            if is_lt:
+                flown = {a: r for a, r in flown.items() if int(r["successes"]) > 0}
+            intervals = {a: _interval(r, is_lt) for a, r in flown.items()}
             bold |= {(a, col) for a in _best(intervals, lower_is_better=is_lt)}
     labels = {a: _agent_label(a, p) for a, p in agents}
     frame = pd.DataFrame(columns, index=[a for a, _ in agents]).rename(index=labels)

@@ -67,3 +67,17 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
 
     with pytest.raises(ValueError, match="epochs=1, not 2"):  # another setting: not the same run
         distill(DaggerConfig(**{**config.__dict__, "epochs": 2}), tmp_path / "parts", eval_episodes=0, resume=True)
+
+
+def test_a_kill_inside_the_state_swap_resumes_from_the_state_it_left(tmp_path: Path) -> None:
+    """Killed between moving resume/ aside and renaming resume.partial/ into place: either folder is found."""
+    from racebench.training.dagger import RESUME_DIR, completed_iterations, load_resume_state
+
+    config = DaggerConfig(iterations=1, steps_per_iteration=64, n_envs=4, epochs=1, batch_size=32)
+    distill(config, tmp_path, eval_episodes=0)
+    (tmp_path / RESUME_DIR).rename(tmp_path / f"{RESUME_DIR}.partial")  # the new state, not yet swapped in
+    assert completed_iterations(tmp_path) == 1
+    state = load_resume_state(tmp_path, DaggerConfig(**{**config.__dict__, "iterations": 2}))
+    assert state is not None and state["folder"].endswith(f"{RESUME_DIR}.partial")
+    (tmp_path / f"{RESUME_DIR}.partial" / "state.json").unlink()  # written last: without it the copy is partial
+    assert completed_iterations(tmp_path) == 0

@@ -297,6 +297,9 @@ def test_tables_bold_only_where_95_percent_intervals_separate() -> None:
     )
     bold = [cell.strip() for line in apart.splitlines()[4:] for cell in line.split("|") if "**" in cell]
     assert bold == ["**3.00**", "**100 [72–100]**"]  # a's lap and SR; the privileged p's faster lap never
+    # An agent without laps (0/10) has no lap time to compare: it does not cancel a's lap-time bold.
+    with_zero = make_table(pd.DataFrame([row("a", 10, 3.0, 0.05), row("b", 2, 4.0, 0.05), row("z", 0, 0.0, 0.0)]), "II")
+    assert "**3.00**" in with_zero
 
 
 def test_table_ii_from_a_fixed_csv() -> None:
@@ -510,6 +513,9 @@ def test_one_label_on_several_policies_gets_each_directorys_name(tmp_path: Path,
     for agent, out in (("hover", tmp_path / "a" / "eval"), ("random", tmp_path / "b")):
         Evaluator(agent, [env], episodes=1, out_dir=out, agent_name="same").run(progress=False)
     Evaluator("hover", [env], episodes=1, out_dir=tmp_path / "c", agent_name="other").run(progress=False)
-    summary = read_summaries([tmp_path / "a" / "eval", tmp_path / "b", tmp_path / "c"])
-    assert sorted(summary["agent"]) == ["other", "same (a)", "same (b)"]
+    # The same policy in a second directory (another suite, say) keeps its first directory's label.
+    again = Evaluator("hover", ["RaceObs-J-Level1-v0"], episodes=1, out_dir=tmp_path / "d", agent_name="same")
+    again.run(progress=False)
+    summary = read_summaries([tmp_path / "a" / "eval", tmp_path / "b", tmp_path / "c", tmp_path / "d"])
+    assert sorted(summary["agent"]) == ["other", "same (a)", "same (a)", "same (b)"]
     assert "name several policies" in caplog.text

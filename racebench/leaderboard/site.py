@@ -466,16 +466,14 @@ def entry_media(entry: Entry, folder: Path, videos: bool = False, trust_code: bo
     entry's policy on the first public evaluation seed (:func:`racebench.video.render_episode_video`): chase view
     beside the colour-mapped depth image, outcome captioned. Videos are built on demand and not committed.
     """
+    from racebench.agents import AgentLoadError
     from racebench.evaluation import EVAL_SEED_BASE
     from racebench.plots import plot_track_3d
 
     record_dirs = [entry.root / d for d in entry.meta.get("records", [])]
     figures, missing = [], []
     for env_id in MAIN_IDS:
-        source = next(
-            (d for d in record_dirs if any(r["env_id"] == env_id for r in entry.records)
-             and _has_trajectories(d, env_id)), None,
-        )  # fmt: skip
+        source = next((d for d in record_dirs if _has_trajectories(d, env_id)), None)
         if source is None:
             missing.append(env_id)
             continue
@@ -497,8 +495,12 @@ def entry_media(entry: Entry, folder: Path, videos: bool = False, trust_code: bo
             if any(r["env_id"] == env_id for r in entry.records):
                 mp4 = folder / f"{TRACK_LABELS[env_id].replace(' ', '-')}.mp4"
                 folder.mkdir(parents=True, exist_ok=True)
-                render_episode_video(entry.agent_spec, env_id, EVAL_SEED_BASE, mp4, trust_code=trust_code,
-                                     label=entry.name)  # fmt: skip
+                try:
+                    render_episode_video(entry.agent_spec, env_id, EVAL_SEED_BASE, mp4, trust_code=trust_code,
+                                         label=entry.name)  # fmt: skip
+                except AgentLoadError as exc:  # e.g. a .zip without --trust-code: the page says so, the site builds
+                    clips.append(f'<p class="note">No video: {_esc(exc)}</p>')
+                    break
                 caption = f"{_esc(env_id)}, seed {EVAL_SEED_BASE}"
                 clips.append(f'<figure><video src="{_esc(folder.name)}/{_esc(mp4.name)}" controls width="640">'
                              f"</video><figcaption>{caption}</figcaption></figure>")  # fmt: skip

@@ -74,10 +74,24 @@ class DaggerConfig:
         data = yaml.safe_load(Path(path).read_text())
         if not isinstance(data, dict) or data.pop("method", None) != "dagger":
             raise ValueError(f"{path}: not a DAgger config (expected a mapping with method: dagger)")
+        per_run = sorted(set(data) & {"track", "seed", "iterations"})
+        if per_run:
+            raise ValueError(f"{path}: {per_run[0]!r} is set per run (racebench train --track/--seed/--steps)")
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"{path}: unknown key {unknown[0]!r} (known: {sorted(known)})")
+        if "name" not in data:
+            raise ValueError(f"{path}: missing key 'name'")
+        for f in fields(cls):  # YAML 1.1 reads 3e-4 as a string: convert numbers, name what does not convert
+            if f.name in data and f.type in ("int", "float"):
+                try:
+                    value = float(data[f.name])
+                except (TypeError, ValueError):
+                    raise ValueError(f"{path}: {f.name} must be a number, got {data[f.name]!r}") from None
+                if f.type == "int" and value != int(value):
+                    raise ValueError(f"{path}: {f.name} must be an integer, got {data[f.name]!r}")
+                data[f.name] = int(value) if f.type == "int" else value
         config = cls(**data)
         config.validate(str(path))
         return config
@@ -262,13 +276,32 @@ def save_resume_state(
     shutil.rmtree(old, ignore_errors=True)
 
 
+def resume_folder(out: Path) -> Path | None:
+    """The folder holding the newest complete saved state of the run in ``out``, if any.
+
+    Normally ``resume/``. A kill inside :func:`save_resume_state`'s swap can leave ``resume.partial/`` (complete
+    once its ``state.json``, written last, exists) and ``resume.old/`` (the previous state) instead.
+    """
+    for name in (RESUME_DIR, f"{RESUME_DIR}.partial", f"{RESUME_DIR}.old"):
+        if (out / name / "state.json").is_file():
+            return out / name
+    return None
+
+
+def completed_iterations(out: Path) -> int:
+    """How many iterations the saved state of the run in ``out`` has finished (0 without one)."""
+    folder = resume_folder(out)
+    return 0 if folder is None else int(json.loads((folder / "state.json").read_text())["iteration"]) + 1
+
+
 def load_resume_state(out: Path, config: DaggerConfig) -> dict[str, Any] | None:
     """The state :func:`save_resume_state` left in ``out`` (``None`` if there is none), checked against ``config``.
 
     Every setting must match the saved run's except ``iterations``, which may grow (a finished run continues).
+    The returned dict's ``folder`` is where the state was found (:func:`resume_folder`).
     """
-    folder = out / RESUME_DIR
-    if not (folder / "state.json").is_file():
+    folder = resume_folder(out)
+    if folder is None:
         return None
     try:
         state = json.loads((folder / "state.json").read_text())
@@ -284,7 +317,7 @@ def load_resume_state(out: Path, config: DaggerConfig) -> dict[str, Any] | None:
         raise ValueError(
             f"dagger: {out} has finished {state['iteration'] + 1} iterations, more than the {config.iterations} asked"
         )
-    return state
+    return {**state, "folder": str(folder)}
 
 
 def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resume: bool = False) -> dict[str, Any]:
@@ -301,6 +334,8 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     saved = load_resume_state(out, config) if resume else None
+    if resume and saved is None:
+        raise ValueError(f"dagger: nothing to resume in {out} (no {RESUME_DIR}/state.json): run it without resume")
     env_id = config.env_id or f"RaceObs-{config.track}-v0"
     made = [
         gym.make(env_id, obs_mode="vision", renderer="raycast", gate_shift=config.gate_shift)
@@ -318,7 +353,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     rows: list[dict[str, Any]] = []
     first, offset = 0, 0.0
     if saved is not None:
-        folder = out / RESUME_DIR
+        folder = Path(saved["folder"])
         policy.load_state_dict(type(policy_model).load(folder / "student.zip", device="cpu").policy.state_dict())
         extra = torch.load(folder / "optimizer.pt", weights_only=False)  # written by this function: trusted
         optimizer.load_state_dict(extra["optimizer"])

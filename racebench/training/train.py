@@ -91,19 +91,21 @@ def run_training(
     eval_episodes: int = 10, device: str = "auto", checkpoint_every: int = 50_000,
 ) -> dict[str, Any]:  # fmt: skip
     """Train ``config`` (from :func:`load_config`) on ``track``: PPO through :func:`train`, DAgger through
-    :func:`racebench.training.dagger.distill` with ``ceil(steps / steps_per_iteration)`` iterations, resumed
-    from its run folder when ``resume`` is given (a DAgger run keeps its whole state there, not in a zip)."""
-    from racebench.training.dagger import DaggerConfig, distill
+    :func:`racebench.training.dagger.distill` with ``ceil(steps / steps_per_iteration)`` iterations. As for
+    PPO, with ``resume`` the ``steps`` are the steps to add; a DAgger run resumes from its run folder (its
+    whole state is kept there, not in a zip), so ``resume`` must name that folder."""
+    from racebench.training.dagger import DaggerConfig, completed_iterations, distill
 
     if not isinstance(config, DaggerConfig):
         return train(config, track, steps, seed, out, resume, checkpoint_every=checkpoint_every,
                      eval_episodes=eval_episodes, device=device)  # fmt: skip
-    iterations = max(1, -(-steps // config.steps_per_iteration))
-    config = dataclasses.replace(config, track=track, seed=seed, iterations=iterations)
-    config.validate(config.name)
     folder = Path(out) if out is not None else Path("runs") / f"{config.name}-{track}-seed{seed}"
     if resume is not None and Path(resume).resolve() != folder.resolve():
         raise ValueError(f"a DAgger run resumes from its own folder: pass --resume {folder} (or the same --out)")
+    more = -(-steps // config.steps_per_iteration)
+    iterations = completed_iterations(folder) + more if resume is not None else max(1, more)
+    config = dataclasses.replace(config, track=track, seed=seed, iterations=max(iterations, 1))
+    config.validate(config.name)
     return distill(config, folder, eval_episodes=eval_episodes, resume=resume is not None)
 
 
