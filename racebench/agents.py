@@ -417,8 +417,8 @@ class SB3Agent:
         """The deterministic action of a Gaussian actor-critic, computed as ``_predict`` does, minus its overhead.
 
         ``_predict`` builds a distribution object (and sb3-contrib re-dispatches the sequence pass) on every
-        call, ~40 % of a batch-16 call of the paper's network; the mean of a diagonal Gaussian is the action
-        head's output, so the same layers run in the same order (tested equal to ``_predict``).
+        call, overhead of the size of the small networks' own arithmetic; the mean of a diagonal Gaussian is the
+        action head's output, so the same layers run in the same order (tested equal to ``_predict``).
         """
         import torch
         from stable_baselines3.common.policies import BaseModel

@@ -67,7 +67,7 @@ def _interval(row: pd.Series | None, lap_time: bool) -> tuple[float, float] | No
     return mean - half, mean + half
 
 
-def _best(intervals: dict[str, tuple[float, float] | None], lower_is_better: bool) -> set[str]:
+def best_separated(intervals: dict[str, tuple[float, float] | None], lower_is_better: bool) -> set[str]:
     """Agents whose interval is entirely better than every other agent's (needs a rival; unknown never bold).
 
     Bold means "distinguishable from the rest at 95 %", not "highest point estimate": 10/10 [72–100] against
@@ -98,7 +98,7 @@ def table_ii(summary: pd.DataFrame, ci: bool = True, lap_time: bool = True) -> t
             if is_lt:
                 flown = {a: r for a, r in flown.items() if int(r["successes"]) > 0}
             intervals = {a: _interval(r, is_lt) for a, r in flown.items()}
-            bold |= {(a, col) for a in _best(intervals, lower_is_better=is_lt)}
+            bold |= {(a, col) for a in best_separated(intervals, lower_is_better=is_lt)}
     labels = {a: _agent_label(a, p) for a, p in agents}
     frame = pd.DataFrame(columns, index=[a for a, _ in agents]).rename(index=labels)
     return frame, {(labels[a], col) for a, col in bold}
@@ -125,7 +125,7 @@ def table_iv(summary: pd.DataFrame, ci: bool = True) -> tuple[pd.DataFrame, set]
                 row = _lookup(summary, agent, track, variant)
                 if row is not None and not privileged[agent]:
                     intervals[agent] = _interval(row, lap_time=False)
-            for agent in _best(intervals, lower_is_better=False):
+            for agent in best_separated(intervals, lower_is_better=False):
                 bold.add((label, f"{_agent_label(agent, privileged[agent])} {TRACK_NAMES[track]}"))
     return pd.DataFrame(columns, index=[label for label, _ in variants]), bold
 

@@ -120,13 +120,9 @@ def rank(entries: Sequence[Entry], accepted: Sequence[str]) -> list[Entry]:
 
 def separated_best(cells: dict[str, Cell | None]) -> set[str]:
     """Names whose Wilson interval lies strictly above every other name's interval (needs a rival)."""
-    present = {name: c for name, c in cells.items() if c is not None}
-    best = set()
-    for name, cell in present.items():
-        rivals = [c for other, c in present.items() if other != name]
-        if rivals and all(cell.interval[0] > c.interval[1] for c in rivals):
-            best.add(name)
-    return best
+    from racebench.tables import best_separated
+
+    return best_separated({name: c.interval for name, c in cells.items() if c is not None}, lower_is_better=False)
 
 
 def aggregate(cells: dict[str, Cell], records: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
@@ -293,19 +289,11 @@ def ranked_summary(entries: Sequence[Entry], accepted: Sequence[str]) -> pd.Data
     return summarize(pd.DataFrame(rows))
 
 
-def _separated(intervals: dict[str, tuple[float, float]]) -> set[str]:
-    """Keys whose interval lies strictly above every other key's (needs a rival)."""
-    return {
-        k for k, (low, _) in intervals.items()
-        if len(intervals) > 1 and all(low > high for other, (_, high) in intervals.items() if other != k)
-    }  # fmt: skip
-
-
 def paper_table_html(summary: pd.DataFrame, which: str) -> str:
     """Table II or IV of the paper as HTML: the cells of ``racebench table``, bold only where the Wilson interval
     of a non-privileged entry lies entirely above every other non-privileged entry's in the same comparison (a
     track's SR column in II; a row and track in IV). Lap times are never bold: no interval is shown for them."""
-    from racebench.tables import TRACK_NAMES, TRACK_ORDER, _agent_label, _lookup, table_ii, table_iv
+    from racebench.tables import TRACK_NAMES, TRACK_ORDER, _agent_label, _lookup, best_separated, table_ii, table_iv
 
     agents = list(dict.fromkeys(summary["agent"]))
     privileged = {a: bool(summary.loc[summary["agent"] == a, "privileged"].any()) for a in agents}
@@ -321,14 +309,14 @@ def paper_table_html(summary: pd.DataFrame, which: str) -> str:
         for track in TRACK_ORDER:
             bold |= {
                 (_agent_label(a, False), f"SR [%] {TRACK_NAMES[track]}")
-                for a in _separated(intervals(track, "default"))
+                for a in best_separated(intervals(track, "default"), lower_is_better=False)
             }
     else:
         frame, _ = table_iv(summary, ci=True)
         for variant in frame.index:
             key = variant.replace("Density ", "Density").replace("Gate ±", "GateShift").removesuffix(" m")
             for track in TRACK_ORDER:
-                for a in _separated(intervals(track, key)):
+                for a in best_separated(intervals(track, key), lower_is_better=False):
                     bold.add((variant, f"{_agent_label(a, False)} {TRACK_NAMES[track]}"))
     head = "".join(f"<th>{_esc(c)}</th>" for c in frame.columns)
     body = []
