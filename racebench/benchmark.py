@@ -12,7 +12,7 @@ One run measures, on this machine:
   configured, ``vision-ppo`` with either depth renderer (their ratio), and the share spent in the update;
 * evaluation steps/s of the committed ``vision-ppo`` checkpoint (either renderer) and ``state-ppo`` flown in
   lockstep, against the same episodes' actions replayed in one env alone (their ratio), and the policy call
-  at batch 1 and 16 on one and two torch threads;
+  at batch 1 and 64 on one and two torch threads;
 * the cost of each part of a step (physics substep, collision check, state observation, depth render, noise);
 * the CPU time per env step of each vector-env run, summed over its processes (unlike steps/s, not
   lowered by other processes sharing the cores);
@@ -66,8 +66,8 @@ class BenchSettings:
     vector_steps: int = 150  # vector steps (each steps every env) per measurement
     train_updates: int = 3  # timed PPO updates (rollout + update) of each training measurement, after one warm-up
     train_small: bool = False  # shrink the training configs to 4 envs x 16 steps (smoke test)
-    eval_episodes: int = 64  # episodes of each evaluation measurement (an evaluation flies its own in one lockstep)
-    eval_batch: int = 16  # lockstep width of the evaluation measurements
+    eval_episodes: int = 128  # episodes of each evaluation measurement (an evaluation flies its own in one lockstep)
+    eval_batch: int = 64  # lockstep width of the evaluation measurements (the evaluator's default)
     seed: int = 0
     # The evaluation of the committed checkpoints and end-to-end training take minutes whatever their sizes
     # (checkpoint loading, ONNX export, PPO model builds); a run without them has no targets to judge either.
@@ -381,7 +381,7 @@ def _bench_evaluation(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
 
     The lockstep run records every action; "env alone" replays exactly those actions, open loop, in one env:
     the same episodes, so the same simulator work, without the policy. Their ratio is the evaluation's
-    efficiency. Also the policy call itself at batch 1 and 16 on one and two torch threads (the evaluator
+    efficiency. Also the policy call itself at batch 1 and 64 on one and two torch threads (the evaluator
     runs one thread per process: :func:`racebench.evaluation.torch_threads`).
     """
     import gymnasium as gym
@@ -444,7 +444,7 @@ def _bench_evaluation(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
             probe = gym.make(env_id, obs_mode="vision", renderer="raycast")
             obs, _ = probe.reset(seed=EVAL_SEED_BASE)
             probe.close()
-            for batch in (1, 16):
+            for batch in (1, 64):
                 for n_threads in (1, 2):
                     torch.set_num_threads(n_threads)
                     agent.start(batch)

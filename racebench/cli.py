@@ -108,8 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_eval.add_argument(
         "--batch",
         type=int,
-        default=16,
-        help="episodes each process flies in lockstep, one batched policy call per step (SB3/ONNX; default 16)",
+        default=64,
+        help="episodes each process flies in lockstep, one batched policy call per step (SB3/ONNX; default 64)",
     )
     p_eval.add_argument(
         "--seed-set",
