@@ -220,6 +220,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--teacher", default="planner-fast", choices=["planner-fast", "planner"], help="privileged teacher"
     )
     p_distill.add_argument(
+        "--student", default="vision-ppo", help="PPO baseline config whose network the student is (default vision-ppo)"
+    )
+    p_distill.add_argument(
         "--resume", action="store_true", help="continue the run in --out from its last finished iteration"
     )
 
@@ -321,7 +324,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = DaggerConfig(
             track=args.track, iterations=args.iterations, steps_per_iteration=args.steps_per_iteration,
             n_envs=args.n_envs, seed=args.seed, epochs=args.epochs, max_samples=args.max_samples,
-            teacher=args.teacher,
+            teacher=args.teacher, student=args.student,
         )  # fmt: skip
         try:
             config.validate()

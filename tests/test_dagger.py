@@ -13,15 +13,84 @@ from racebench.agents import SB3Agent
 from racebench.training.dagger import DaggerConfig, Dataset, distill
 
 
+def segment(values: list[float], size: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A segment whose steps are numbered by ``values`` (state and action), depth 0.5."""
+    k = np.array(values, np.float32)[:, None]
+    return np.repeat(k, 17, 1), np.full((len(k), 1, size, size), 0.5, np.float32), np.repeat(k, 4, 1)
+
+
 def test_dataset_is_a_ring_buffer_of_quantised_depth() -> None:
     data = Dataset(capacity=3, depth_size=2)
     for k in range(4):
-        data.add(
-            np.full((1, 17), k, np.float32), np.full((1, 1, 2, 2), 0.5, np.float32), np.full((1, 4), k, np.float32)
-        )
+        data.add_segment(*segment([k]))
     assert data.size == 3 and sorted(data.action[:, 0].tolist()) == [1.0, 2.0, 3.0]  # the oldest was overwritten
     batch = data.batch(np.arange(3))
     assert batch["depth"].dtype.is_floating_point and abs(float(batch["depth"][0, 0, 0, 0]) - 128 / 255) < 1e-6
+
+
+def test_sequence_chunks_keep_episode_boundaries() -> None:
+    """Chunks cover every stored step once, hold consecutive steps of one episode, and break at every start."""
+    data = Dataset(capacity=100, depth_size=2)
+    episodes = [list(range(100 * e, 100 * e + n)) for e, n in enumerate([5, 40, 3, 17])]  # step ids, by episode
+    for steps in episodes:
+        data.add_segment(*segment(steps))
+    first, count, position = data.chunks(16)
+    assert count.sum() == data.size == 65 and count.max() <= 16
+    covered = np.concatenate([np.arange(a, a + n) for a, n in zip(first, count, strict=True)])
+    assert np.array_equal(np.sort(covered), np.arange(65))  # each step once
+    ids = data.action[:, 0]
+    for a, n, p in zip(first, count, position, strict=True):
+        chunk = ids[a : a + n]
+        assert np.all(np.diff(chunk) == 1)  # consecutive steps ...
+        assert len({int(i) // 100 for i in chunk}) == 1  # ... of one episode
+        assert (p == 0) == (int(chunk[0]) % 100 == 0)  # position 0 exactly where an episode begins
+    assert [int(n) for n in count] == [5, 16, 16, 8, 3, 16, 1]
+
+    # The ring overwrites the oldest steps: the first survivor starts a chunk of its own (zero state), as does
+    # index 0, where a segment that wrapped around the array's end continues.
+    data.add_segment(*segment(list(range(400, 445))))  # 65 + 45 > 100: wraps, overwrites episode 0 and part of 1
+    first, count, position = data.chunks(16)
+    assert count.sum() == 100
+    ids = data.action[:, 0]
+    for a, n in zip(first, count, strict=True):
+        chunk = ids[a : a + n]
+        assert np.all(np.diff(chunk) == 1) and len({int(i) // 100 for i in chunk}) == 1
+    assert position[np.searchsorted(first, data.next)] == 0  # the oldest surviving step (an episode-1 step)
+    assert ids[data.next] == 105 and position[0] == 0
+
+
+def test_chunk_start_states_are_the_states_of_stepping_each_episode_in_order() -> None:
+    """The GRU state a training chunk starts from is the one the evaluator reaches stepping the episode."""
+    import gymnasium as gym
+    import torch
+
+    from racebench.training.dagger import chunk_start_states, make_student, student_features, student_unroll
+
+    env = gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast")
+    policy = make_student(env, seed=0).policy
+    env.close()
+    rng = np.random.default_rng(0)
+    data = Dataset(capacity=200, depth_size=64)
+    for n in (7, 30, 12):
+        data.add_segment(rng.normal(size=(n, 17)).astype(np.float32), rng.random((n, 1, 64, 64), np.float32),
+                         rng.normal(size=(n, 4)).astype(np.float32))  # fmt: skip
+    chunks = data.chunks(8)
+    states = chunk_start_states(policy, data, chunks)
+    first, _, position = chunks
+    with torch.no_grad():
+        batch = data.batch(np.arange(data.size))
+        batch.pop("action")
+        features = student_features(policy, batch)
+        stepped = torch.zeros(data.size, policy.lstm_actor.hidden_size)  # state before each step
+        hidden = torch.zeros(1, 1, policy.lstm_actor.hidden_size)
+        for i in range(data.size):
+            if data.starts[i]:
+                hidden = torch.zeros_like(hidden)
+            stepped[i] = hidden[0, 0]
+            _, output = student_unroll(policy, features[i].view(1, 1, -1), hidden)
+            hidden = output[-1:]
+    assert torch.allclose(states, stepped[first], atol=1e-5)
+    assert torch.all(states[position == 0] == 0) and torch.any(states[position > 0] != 0)
 
 
 def test_bad_settings_are_named() -> None:
@@ -44,6 +113,28 @@ def test_a_tiny_distillation_run(tmp_path: Path) -> None:
     assert saved["teacher"] == "planner-fast" and saved["eval"]["n"] == 1  # the fast expert by default
     agent = SB3Agent(summary["checkpoint"], trust_code=True)
     assert agent.obs_mode == "vision" and not agent.privileged
+    assert saved["student"] == "vision-ppo" and agent.recurrent  # the paper's GRU network by default
+
+    # The evaluator flies the student exactly as training unrolled it: the same actions, step after step.
+    import gymnasium as gym
+    import torch
+
+    from racebench.training.dagger import student_features, student_unroll
+
+    env = gym.make("RaceObs-S-v0", obs_mode="vision")
+    obs, _ = env.reset(seed=1_000_000)
+    agent.start(1)
+    hidden = torch.zeros(1, 1, agent.model.policy.lstm_actor.hidden_size)
+    for _ in range(5):
+        evaluated = agent.act_batch([obs])[0]
+        with torch.no_grad():
+            tensors = {k: torch.as_tensor(v[None]) for k, v in obs.items()}
+            trained, output = student_unroll(agent.model.policy, student_features(agent.model.policy, tensors)[None],
+                                             hidden)  # fmt: skip
+        hidden = output[-1:]
+        np.testing.assert_allclose(evaluated, trained[0, 0].numpy().clip(-1, 1), atol=1e-6)
+        obs, *_ = env.step(evaluated)
+    env.close()
 
 
 def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path) -> None:

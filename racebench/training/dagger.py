@@ -14,10 +14,18 @@ aggregate of those labels (DAgger, Ross et al. 2011). The algorithm, in full:
 3. After each collection, the student is trained for ``epochs`` passes over the whole aggregate (MSE between its
    deterministic action and the teacher's).
 
-The student is the feed-forward ``vision-no-gru`` network (state MLP + strided depth CNN → [256, 192, 96] →
-action), held in a stable-baselines3 ``PPO`` so the result is an ordinary checkpoint: the common evaluator
-flies it, ``export_onnx`` exports it, and PPO can fine-tune it. Training seeds are below the evaluation seeds.
+The student is the network of a PPO baseline config (``student``), held in that config's stable-baselines3
+model so the result is an ordinary checkpoint: the common evaluator flies it, ``export_onnx`` exports it, and
+PPO can fine-tune it. By default it is the paper's network (``vision-ppo``: state MLP + depth CNN → GRU(256) →
+[192, 96]); ``vision-no-gru`` gives the feed-forward ablation. Training seeds are below the evaluation seeds.
 Depth images are stored as uint8 (1/255 steps of normalised inverse depth, below the 0.02 depth noise).
+
+A recurrent student is trained with truncated backpropagation through time. The aggregate keeps each
+episode's steps contiguous (a *run*; :meth:`Dataset.add_segment`), cut into chunks of ``sequence_length``
+steps (:meth:`Dataset.chunks`) that never cross an episode boundary. Before each fit the current student
+runs, without gradient, through every run in order to give each chunk the GRU state it starts from (zero at
+an episode's first step; :func:`chunk_start_states`), then minibatches of chunks are unrolled from those
+states with the gradient flowing through at most ``sequence_length`` steps.
 """
 
 from __future__ import annotations
@@ -65,6 +73,8 @@ class DaggerConfig:
     seed: int = 0
     update_threads: int = 2
     teacher: str = "planner-fast"  # a privileged built-in: "planner-fast" (the fast expert) or "planner"
+    student: str = "vision-ppo"  # the PPO baseline config whose network the student is (vision-ppo: the paper's)
+    sequence_length: int = 32  # truncated-BPTT chunk of a recurrent student, in steps
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> DaggerConfig:
@@ -112,31 +122,66 @@ class DaggerConfig:
             (self.max_samples >= self.batch_size, "max_samples must be >= batch_size"),
             (0 <= self.seed < EVAL_SEED_BASE, f"seed must be in [0, {EVAL_SEED_BASE})"),
             (self.teacher in TEACHERS, f"teacher must be one of {TEACHERS}, got {self.teacher!r}"),
+            (self.sequence_length >= 1, "sequence_length must be >= 1"),
         ]
         checks.append((self.update_threads >= 1, "update_threads must be >= 1"))
         for ok, message in checks:
             if not ok:
                 raise ValueError(f"{source}: {message}")
+        from racebench.training.train import TrainConfig
+
+        try:
+            student = TrainConfig.from_yaml(self.student)
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{source}: student {self.student!r} is not a PPO baseline config ({exc})") from None
+        if student.obs_mode != "vision":
+            raise ValueError(f"{source}: student {self.student!r} must see depth (obs_mode vision)")
 
 
 class Dataset:
-    """The DAgger aggregate: observations (depth as uint8) and the teacher's actions, a ring buffer."""
+    """The DAgger aggregate: observations (depth as uint8) and the teacher's actions, a ring buffer.
+
+    Samples are stored one episode segment at a time (:meth:`add_segment`), so consecutive indices are
+    consecutive steps of one episode except where ``starts`` marks a new segment. Index 0 and the oldest
+    surviving sample after an overwrite also start one (their predecessor is gone or at the far end).
+    """
 
     def __init__(self, capacity: int, depth_size: int) -> None:
         self.state = np.zeros((capacity, 17), dtype=np.float32)
         self.depth = np.zeros((capacity, 1, depth_size, depth_size), dtype=np.uint8)
         self.action = np.zeros((capacity, 4), dtype=np.float32)
+        self.starts = np.zeros(capacity, dtype=bool)
         self.size = self.next = 0
 
-    def add(self, state: np.ndarray, depth: np.ndarray, action: np.ndarray) -> None:
-        """Store a batch of labelled observations."""
+    def add_segment(self, state: np.ndarray, depth: np.ndarray, action: np.ndarray) -> None:
+        """Store consecutive steps of one episode (depth quantised to uint8); the first starts a sequence."""
+        capacity = len(self.state)
+        quantised = np.round(depth * 255.0).astype(np.uint8)
         for k in range(len(state)):
             i = self.next
-            self.state[i] = state[k]
-            self.depth[i] = np.round(depth[k] * 255.0).astype(np.uint8)
-            self.action[i] = action[k]
-            self.next = (i + 1) % len(self.state)
-            self.size = min(self.size + 1, len(self.state))
+            self.state[i], self.depth[i], self.action[i] = state[k], quantised[k], action[k]
+            self.starts[i] = k == 0 or i == 0
+            self.next = (i + 1) % capacity
+            self.size = min(self.size + 1, capacity)
+        if self.size == capacity and len(state):
+            self.starts[self.next] = True  # the oldest surviving step lost its predecessor
+
+    def chunks(self, length: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The stored steps cut into sequences of at most ``length`` that never cross a segment start.
+
+        Returns ``(first, count, position)``: each chunk's first index, its number of steps, and its ordinal
+        within its segment (0: the chunk starts a segment, so a recurrent state of zero). Chunks are in index
+        order and cover every stored step exactly once.
+        """
+        bounds = np.flatnonzero(self.starts[: self.size])
+        bounds = np.union1d(bounds, [0])
+        ends = np.append(bounds[1:], self.size)
+        per_run = -(-(ends - bounds) // length)
+        run = np.repeat(np.arange(len(bounds)), per_run)
+        position = np.arange(len(run)) - np.repeat(np.cumsum(per_run) - per_run, per_run)
+        first = bounds[run] + position * length
+        count = np.minimum(length, ends[run] - first)
+        return first, count, position
 
     def batch(self, index: np.ndarray) -> dict[str, torch.Tensor]:
         """A minibatch as the student's observation dict (depth back to [0, 1] floats) plus its labels."""
@@ -147,18 +192,51 @@ class Dataset:
         }
 
 
-def make_student(env: gym.Env, seed: int) -> Any:
-    """The student: ``vision-no-gru``'s network in an SB3 ``PPO`` (deterministic action = the actor's mean)."""
+def make_student(env: gym.Env, seed: int, student: str = "vision-ppo") -> Any:
+    """The student: the network of the PPO baseline config ``student`` in its SB3 / sb3-contrib model
+    (deterministic action = the actor's mean)."""
     from racebench.training.train import TrainConfig, make_model
 
-    config = TrainConfig.from_yaml("vision-no-gru")
-    return make_model(config, env, seed, tensorboard=None, device="cpu")
+    config = TrainConfig.from_yaml(student)
+    model = make_model(config, env, seed, tensorboard=None, device="cpu")
+    gru = getattr(model.policy, "lstm_actor", None)
+    if gru is not None and gru.num_layers != 1:
+        raise ValueError(f"student {student!r}: a {gru.num_layers}-layer GRU (the chunk states assume one layer)")
+    return model
+
+
+def is_recurrent(policy: Any) -> bool:
+    """Whether the student carries a recurrent state (the paper's GRU network)."""
+    return getattr(policy, "lstm_actor", None) is not None
+
+
+def student_features(policy: Any, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The actor's features of a batch of observations (state MLP and depth CNN, concatenated)."""
+    from stable_baselines3.common.policies import BaseModel
+
+    return BaseModel.extract_features(policy, obs, policy.pi_features_extractor)
+
+
+def student_head(policy: Any, features: torch.Tensor) -> torch.Tensor:
+    """The deterministic action (before clipping) from the actor's features, or from its GRU's output."""
+    return policy.action_net(policy.mlp_extractor.forward_actor(features))
 
 
 def student_mean(policy: Any, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-    """The student's deterministic action (before clipping) for a batch of observations."""
-    features = policy.extract_features(obs, policy.pi_features_extractor)
-    return policy.action_net(policy.mlp_extractor.forward_actor(features))
+    """A feed-forward student's deterministic action (before clipping) for a batch of observations."""
+    return student_head(policy, student_features(policy, obs))
+
+
+def student_unroll(
+    policy: Any, features: torch.Tensor, hidden: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """A recurrent student over ``(time, batch, features)`` from the GRU state ``hidden`` ``(1, batch, H)``.
+
+    The same layers, in the same order, as the evaluator's :meth:`racebench.agents.SB3Agent.act_batch`.
+    Returns the actions ``(time, batch, 4)`` and the GRU outputs ``(time, batch, H)`` (each step's new state).
+    """
+    output, _ = policy.lstm_actor(features, (hidden, torch.zeros_like(hidden)))
+    return student_head(policy, output), output
 
 
 def collect(
@@ -174,9 +252,15 @@ def collect(
     """Fly ``steps`` env steps with the beta-mixture of teacher and student; label every step with the teacher.
 
     ``envs`` are unwrapped vision ``RaceEnv``s with the ray caster (depth of all rendered in one call);
-    ``seeds`` is a shared counter of training seeds. Returns the episodes' success rate and mean length.
+    ``seeds`` is a shared counter of training seeds. A recurrent student's state runs through every step
+    whoever acts, and is zeroed when its env starts an episode. Each episode is stored as one segment when it
+    ends (an episode still flying at the end is stored as far as it got). Returns the episodes' success rate
+    and mean length.
     """
     caster = BatchDepthRenderer(envs[0].camera)
+    recurrent = is_recurrent(policy)
+    hidden = torch.zeros(1, len(envs), policy.lstm_actor.hidden_size) if recurrent else None
+    segments: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = [[] for _ in envs]
 
     def observe(indices: list[int]) -> list[dict]:
         depth = caster.render(
@@ -190,6 +274,13 @@ def collect(
         envs[i].reset_state(seed=seeds[0])
         seeds[0] += 1
         teachers[i].reset(env=envs[i], seed=None)
+        if hidden is not None:
+            hidden[:, i] = 0.0
+
+    def store(i: int) -> None:
+        if segments[i]:
+            dataset.add_segment(*(np.stack(column) for column in zip(*segments[i], strict=True)))
+            segments[i] = []
 
     for i in range(len(envs)):
         start(i)
@@ -200,9 +291,15 @@ def collect(
         teacher = np.array([t.act() for t in teachers], dtype=np.float32).clip(-1.0, 1.0)
         state = np.stack([o["state"] for o in obs])
         depth = np.stack([o["depth"] for o in obs])
-        dataset.add(state, depth, teacher)
+        for i in range(len(envs)):
+            segments[i].append((state[i], depth[i], teacher[i]))
+        batch = {"state": torch.from_numpy(state), "depth": torch.from_numpy(depth)}
         with torch.no_grad():  # not inference_mode: RaceFeatures converts its CNN weights on first use
-            student = student_mean(policy, {"state": torch.from_numpy(state), "depth": torch.from_numpy(depth)})
+            if hidden is not None:
+                actions, output = student_unroll(policy, student_features(policy, batch).unsqueeze(0), hidden)
+                student, hidden = actions[0], output[-1:].clone()
+            else:
+                student = student_mean(policy, batch)
         student = student.numpy().clip(-1.0, 1.0)
         use_teacher = rng.random(len(envs)) < beta
         actions = np.where(use_teacher[:, None], teacher, student)
@@ -213,9 +310,12 @@ def collect(
                 successes.append(bool(info["is_success"]))
                 lengths.append(int(lengths_now[i]))
                 lengths_now[i] = 0
+                store(i)
                 start(i)
         obs = observe(list(range(len(envs))))
         taken += len(envs)
+    for i in range(len(envs)):
+        store(i)
     return {
         "episodes": len(successes),
         "success_rate": float(np.mean(successes)) if successes else float("nan"),
@@ -223,21 +323,79 @@ def collect(
     }
 
 
+def chunk_start_states(policy: Any, dataset: Dataset, chunks: tuple, batch: int = 4096) -> torch.Tensor:
+    """The GRU state each chunk starts from under the current student: ``(n_chunks, H)``.
+
+    The student runs without gradient through every segment in order, chunk by chunk, all segments side by
+    side (their ``position``-th chunks together); a chunk at position 0 starts from zero.
+    """
+    first, count, position = chunks
+    length = int(count.max()) if len(count) else 1
+    with torch.no_grad():
+        features = torch.cat([
+            student_features(policy, {k: v for k, v in dataset.batch(np.arange(a, min(a + batch, dataset.size))).items()
+                                      if k != "action"})
+            for a in range(0, dataset.size, batch)
+        ])  # fmt: skip
+        states = torch.zeros(len(first), policy.lstm_actor.hidden_size)
+        segment = np.cumsum(position == 0) - 1  # each chunk's segment
+        carried = torch.zeros(int(segment[-1]) + 1 if len(segment) else 0, policy.lstm_actor.hidden_size)
+        for p in range(int(position.max()) + 1 if len(position) else 0):
+            sel = np.flatnonzero(position == p)
+            steps = np.minimum(first[sel, None] + np.arange(length), first[sel, None] + count[sel, None] - 1)
+            start = carried[segment[sel]] if p > 0 else torch.zeros(len(sel), policy.lstm_actor.hidden_size)
+            states[sel] = start
+            output, _ = policy.lstm_actor(features[steps].transpose(0, 1), (start[None], torch.zeros_like(start[None])))
+            carried[segment[sel]] = output[torch.from_numpy(count[sel] - 1), torch.arange(len(sel))]
+    return states
+
+
 def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng: np.random.Generator) -> float:
-    """``config.epochs`` passes of minibatch MSE regression over the dataset; returns the last epoch's loss."""
+    """``config.epochs`` passes of minibatch MSE regression over the dataset; returns the last epoch's loss.
+
+    A recurrent student trains on chunks of ``config.sequence_length`` steps (``batch_size // sequence_length``
+    chunks a minibatch), each unrolled from the state :func:`chunk_start_states` gave it; the loss averages
+    the chunks' real steps (a short chunk's padding is masked).
+    """
     policy.set_training_mode(True)
-    losses = []
-    for _ in range(config.epochs):
-        order = rng.permutation(dataset.size)
-        losses = []
-        for start in range(0, dataset.size - config.batch_size + 1, config.batch_size):
-            batch = dataset.batch(order[start : start + config.batch_size])
-            target = batch.pop("action")
-            loss = torch.nn.functional.mse_loss(student_mean(policy, batch), target)
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-            losses.append(loss.item())
+    losses: list[float] = []
+    if is_recurrent(policy):
+        length = config.sequence_length
+        chunks = dataset.chunks(length)
+        policy.set_training_mode(False)
+        states = chunk_start_states(policy, dataset, chunks)
+        policy.set_training_mode(True)
+        first, count, _ = chunks
+        per_batch = max(1, config.batch_size // length)
+        offsets = np.arange(length)
+        for _ in range(config.epochs):
+            order = rng.permutation(len(first))
+            losses = []
+            for a in range(0, len(order), per_batch):
+                pick = order[a : a + per_batch]
+                steps = np.minimum(first[pick, None] + offsets, first[pick, None] + count[pick, None] - 1)
+                batch = dataset.batch(steps.T.reshape(-1))  # time-major: (length * chunks)
+                target = batch.pop("action").view(length, len(pick), -1)
+                features = student_features(policy, batch).view(length, len(pick), -1)
+                actions, _ = student_unroll(policy, features, states[pick][None])
+                mask = torch.from_numpy(offsets[:, None] < count[pick][None, :]).unsqueeze(-1)
+                error = ((actions - target) ** 2 * mask).sum() / (mask.sum() * target.shape[-1])
+                optimizer.zero_grad()
+                error.backward()
+                optimizer.step()
+                losses.append(error.item())
+    else:
+        for _ in range(config.epochs):
+            order = rng.permutation(dataset.size)
+            losses = []
+            for start in range(0, dataset.size - config.batch_size + 1, config.batch_size):
+                batch = dataset.batch(order[start : start + config.batch_size])
+                target = batch.pop("action")
+                loss = torch.nn.functional.mse_loss(student_mean(policy, batch), target)
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                losses.append(loss.item())
     policy.set_training_mode(False)
     return float(np.mean(losses)) if losses else float("nan")
 
@@ -265,7 +423,7 @@ def save_resume_state(
     torch.save({"optimizer": optimizer.state_dict(), "torch_rng": torch.get_rng_state()}, partial / "optimizer.pt")
     n = dataset.size
     np.savez(partial / "dataset.npz", state=dataset.state[:n], depth=dataset.depth[:n], action=dataset.action[:n],
-             next=np.array(dataset.next))  # fmt: skip
+             starts=dataset.starts[:n], next=np.array(dataset.next))  # fmt: skip
     state = {"iteration": iteration, "rng": rng.bit_generator.state, "seeds": seeds, "rows": rows,
              "config": asdict(config)}  # fmt: skip
     (partial / "state.json").write_text(json.dumps(_json_safe(state), allow_nan=False))
@@ -345,7 +503,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     teachers = [load_agent(config.teacher) for _ in envs]
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
-    policy_model = make_student(made[0], config.seed)
+    policy_model = make_student(made[0], config.seed, config.student)
     policy = policy_model.policy
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.learning_rate)
     dataset = Dataset(config.max_samples, envs[0].camera.size)
@@ -361,6 +519,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         with np.load(folder / "dataset.npz") as data:
             n = len(data["state"])
             dataset.state[:n], dataset.depth[:n], dataset.action[:n] = data["state"], data["depth"], data["action"]
+            dataset.starts[:n] = data["starts"]
             dataset.size, dataset.next = n, int(data["next"])
         rng.bit_generator.state = saved["rng"]
         seeds, rows = saved["seeds"], saved["rows"]
@@ -384,6 +543,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     summary: dict[str, Any] = {
         "method": "dagger",
         "teacher": config.teacher,
+        "student": config.student,
         "config": asdict(config),
         "checkpoint": str(checkpoint),
         "wall_s": round(time.perf_counter() - started, 1),
