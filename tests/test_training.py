@@ -48,7 +48,7 @@ def test_every_baseline_config_loads() -> None:
     names = {load_config(p).name for p in BASELINES}
     assert names == {
         "vision-ppo", "state-ppo", "vision-no-gru", "vision-no-avoid", "vision-one-step", "vision-com",
-        "vision-ppo-fast", "vision-distill",
+        "vision-ppo-fast", "vision-distill", "vision-distill-ppo",
     }  # fmt: skip
     assert TrainConfig.from_yaml(BASELINES[0].parent / "vision-no-avoid.yaml").level_kwargs(3)["reward_weights"] == {
         "speed": 0.0,
@@ -298,7 +298,8 @@ def test_gru_policy_state_is_carried_and_reset_at_episode_start() -> None:
 
 @pytest.mark.parametrize("config_path", PPO_BASELINES, ids=[p.stem for p in PPO_BASELINES])
 def test_training_smoke_run(tmp_path: Path, config_path: Path) -> None:
-    config = small(TrainConfig.from_yaml(config_path), n_envs=4, n_steps=64, batch_size=128)
+    # A fine-tuning config starts from its student (test_fine_tuning_starts_from_the_student): here from scratch.
+    config = small(TrainConfig.from_yaml(config_path), n_envs=4, n_steps=64, batch_size=128, init_from=None)
     result = train(config, "S", steps=2048, seed=0, out=tmp_path, checkpoint_every=1024, eval_episodes=1)
     assert result["timesteps"] >= 2048 and Path(result["checkpoint"]).is_file()
     progress = pd.read_csv(tmp_path / "progress.csv")
@@ -498,3 +499,42 @@ def test_a_dagger_config_trains_through_racebench_train_and_resumes_from_its_fol
     (tmp_path / "bad.yaml").write_text("method: dagger\nname: bad\nbeta_decay: 3\n")
     with pytest.raises(SystemExit, match="beta_decay"):
         cli.main(["train", "--config", str(tmp_path / "bad.yaml")])
+
+
+def test_fine_tuning_starts_from_the_student_and_warms_up_the_critic_alone(tmp_path: Path) -> None:
+    """vision-distill-ppo: the policy starts as the named checkpoint (log sigma reset), and during the critic
+    warm-up only critic parameters change."""
+    import torch
+
+    from racebench.agents import SB3Agent
+    from racebench.training.train import critic_parameter
+
+    config = small(TrainConfig.from_yaml("vision-distill-ppo"), n_envs=4, n_steps=32, batch_size=64)
+    env = make_vec_env("RaceObs-S-v0", n_envs=1, env_kwargs=config.env_kwargs("S"), vec_env_cls=DummyVecEnv)
+    student = make_model(config, env, seed=7, tensorboard=None)
+    env.close()
+    (tmp_path / "student-S-seed3").mkdir()
+    student.save(tmp_path / "student-S-seed3" / "student.zip")
+    start = {k: v.clone() for k, v in student.policy.state_dict().items()}
+
+    config = dataclasses.replace(config, init_from=str(tmp_path / "student-{track}-seed{seed}" / "student.zip"),
+                                 critic_warmup=10**6)  # fmt: skip
+    result = train(config, "S", steps=256, seed=3, out=tmp_path / "run", eval_episodes=0)
+    assert result["init_from"] == str(tmp_path / "student-S-seed3" / "student.zip")
+    tuned = SB3Agent(result["checkpoint"], trust_code=True).model.policy.state_dict()
+    changed = {k for k in start if k != "log_std" and not torch.equal(start[k], tuned[k])}
+    assert changed and all(critic_parameter(k) for k in changed)  # the critic learned, nothing else moved
+    assert torch.all(tuned["log_std"] == config.log_std_init)
+
+    after = train(dataclasses.replace(config, critic_warmup=0), "S", steps=256, seed=3, out=tmp_path / "free",
+                  eval_episodes=0)  # fmt: skip
+    free = SB3Agent(after["checkpoint"], trust_code=True).model.policy.state_dict()
+    assert any(not torch.equal(start[k], free[k]) for k in start if not critic_parameter(k))  # without: all learn
+
+    with pytest.raises(ValueError, match="init_from: .* is not a file"):
+        train(dataclasses.replace(config, init_from=str(tmp_path / "missing.zip")), "S", steps=64, out=tmp_path / "x",
+              eval_episodes=0)  # fmt: skip
+    other = small(TrainConfig.from_yaml("vision-no-gru"), n_envs=4, n_steps=32, batch_size=64,
+                  init_from=config.init_from)  # fmt: skip
+    with pytest.raises(ValueError, match="another network"):
+        train(other, "S", steps=64, seed=3, out=tmp_path / "y", eval_episodes=0)

@@ -59,6 +59,7 @@ BASELINES: tuple[str, ...] = (
     "vision-com",
     "vision-ppo-fast",
     "vision-distill",
+    "vision-distill-ppo",
 )
 
 
@@ -151,6 +152,10 @@ class TrainConfig:
     cnn: str = "strided"  # depth CNN, see racebench.training.policies.depth_cnn ("paper": conv + max-pool)
     torch_threads: int = 1  # learner threads while collecting: more oversubscribes the cores the env workers use
     update_threads: int = 2  # learner threads during the PPO update, when the env workers are idle
+    # Fine-tuning: a checkpoint whose policy weights start the run ({track} and {seed} are filled in; only its
+    # tensors are read, no pickled code) and the steps at the start during which only the critic learns.
+    init_from: str | None = None
+    critic_warmup: int = 0
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> TrainConfig:
@@ -201,6 +206,7 @@ class TrainConfig:
             ),
             (self.cnn in CNN_KINDS, f"cnn must be one of {CNN_KINDS}"),
             (self.torch_threads >= 1 and self.update_threads >= 1, "torch_threads and update_threads must be >= 1"),
+            (self.critic_warmup >= 0, "critic_warmup must be >= 0"),
         ]
         for ok, message in checks:
             if not ok:
@@ -470,6 +476,69 @@ class ThreadsCallback(BaseCallback):
         return True
 
 
+CRITIC_PREFIXES: tuple[str, ...] = ("lstm_critic.", "critic.", "mlp_extractor.value_net.", "value_net.")
+
+
+def critic_parameter(name: str) -> bool:
+    """Whether a policy parameter belongs to the critic only (its GRU, MLP and head); all else acts."""
+    return name.startswith(CRITIC_PREFIXES)
+
+
+class CriticWarmupCallback(BaseCallback):
+    """Freeze everything but the critic for the first ``steps`` steps (fine-tuning a pre-trained actor).
+
+    A policy initialised from an imitation-learned student starts with a critic that knows nothing; PPO's
+    first advantages are then noise, and its updates would unlearn the student before the critic catches up.
+    During the warm-up the features, the actor's GRU and MLP, the action head and log σ take no gradient
+    (Adam skips parameters without one), so only the value loss trains. Decided from the step count at each
+    update, so a resumed run freezes exactly when a run never stopped would.
+    """
+
+    def __init__(self, steps: int) -> None:
+        super().__init__(0)
+        self.steps = steps
+
+    def _set(self) -> None:
+        warm = self.model.num_timesteps < self.steps
+        for name, parameter in self.model.policy.named_parameters():
+            parameter.requires_grad_(critic_parameter(name) or not warm)
+
+    def _on_training_start(self) -> None:
+        self._set()
+
+    def _on_rollout_end(self) -> None:
+        self._set()
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def load_policy_weights(model: Any, path: str | Path, log_std: float) -> None:
+    """Start ``model``'s policy from the weights in the SB3 checkpoint ``path`` (the same network).
+
+    Only the tensors are read (``load_from_zip_file(load_data=False)``: nothing unpickled, so no code runs).
+    log σ is set to ``log_std``: an imitation-learned student never trained it.
+    """
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"init_from: {path} is not a file (train or download the policy it names first)")
+    try:
+        _, params, _ = load_from_zip_file(path, load_data=False, device=model.device)
+    except Exception as exc:  # noqa: BLE001 - a bad archive is named, whatever the zip/torch error
+        raise ValueError(f"init_from: {path} is not an SB3 checkpoint ({type(exc).__name__}: {exc})") from None
+    weights = params.get("policy") if params else None
+    if weights is None:
+        raise ValueError(f"init_from: {path} holds no policy weights")
+    mine = model.policy.state_dict()
+    if set(weights) != set(mine) or any(weights[k].shape != mine[k].shape for k in mine):
+        raise ValueError(f"init_from: {path} is another network than this config's ({model.policy.__class__.__name__})")
+    model.policy.load_state_dict(weights)
+    with torch.no_grad():
+        model.policy.log_std.fill_(log_std)
+
+
 def _read_progress(path: Path) -> pd.DataFrame | None:
     """The progress CSV of a run, or ``None`` if there is none yet."""
     if not path.exists() or path.stat().st_size == 0:
@@ -627,9 +696,12 @@ def train(
     state_file = out / "curriculum.json"
 
     torch.set_num_threads(config.torch_threads)  # measured: 7x faster updates than torch's default here
+    init_from = config.init_from.format(track=track, seed=seed) if config.init_from else None
     if resume is None:
         env = make_envs(config, track, seed)
         model = make_model(config, env, seed, str(out / "tb"), device)
+        if init_from is not None:
+            load_policy_weights(model, init_from, config.log_std_init)
         level, promotions, started_at = config.start_level, [], 0
     else:
         model = _load_model(resume, resolve_device(device))
@@ -669,6 +741,7 @@ def train(
                 save_vecnormalize=True,
             ),
             ThreadsCallback(config.torch_threads, config.update_threads),
+            *([CriticWarmupCallback(config.critic_warmup)] if config.critic_warmup else []),
         ]
     )
     started = time.perf_counter()
@@ -696,6 +769,7 @@ def train(
         "time_to_solve": {"promotions": curriculum.promotions, "solved": curriculum.solved},
         "device": str(model.device),
         "checkpoint": str(final),
+        "init_from": init_from,
     }
     if eval_episodes > 0:
         from racebench.evaluation import Evaluator
