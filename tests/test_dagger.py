@@ -172,3 +172,36 @@ def test_a_kill_inside_the_state_swap_resumes_from_the_state_it_left(tmp_path: P
     assert state is not None and state["folder"].endswith(f"{RESUME_DIR}.partial")
     (tmp_path / f"{RESUME_DIR}.partial" / "state.json").unlink()  # written last: without it the copy is partial
     assert completed_iterations(tmp_path) == 0
+
+
+def test_labels_are_the_experts_actions_and_the_student_sees_the_public_observation() -> None:
+    """Every stored step: the observation any agent gets from env.step (state and depth, nothing privileged),
+    labelled with exactly the action the expert agent takes there when it flies the episode itself."""
+    import gymnasium as gym
+
+    from racebench.agents import load_agent
+    from racebench.training.dagger import collect, make_student
+
+    def make() -> gym.Env:
+        return gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast", gate_shift=0.3)
+
+    env = make()
+    data = Dataset(capacity=500, depth_size=env.unwrapped.camera.size)
+    policy = make_student(env, seed=0).policy
+    collect([env.unwrapped], [load_agent("planner-fast")], policy, beta=1.0, steps=120,
+            rng=np.random.default_rng(0), seeds=[5], dataset=data)  # fmt: skip
+    assert data.size == 120 and data.starts[0] and not data.starts[1:120].any()  # one episode, in order
+
+    twin, expert = make(), load_agent("planner-fast")
+    obs, _ = twin.reset(seed=5)
+    expert.reset(env=twin.unwrapped, seed=None)
+    assert set(obs) == {"state", "depth"}  # the public vision observation: what the student is given
+    for i in range(120):
+        np.testing.assert_array_equal(data.state[i], obs["state"])
+        np.testing.assert_array_equal(data.depth[i], np.round(obs["depth"] * 255.0).astype(np.uint8))
+        action = np.clip(np.asarray(expert.act(obs), dtype=np.float32), -1.0, 1.0)
+        np.testing.assert_array_equal(data.action[i], action)
+        obs, _, terminated, truncated, _ = twin.step(action)
+        assert not (terminated or truncated)
+    env.close()
+    twin.close()
