@@ -109,7 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--batch",
         type=int,
         default=64,
-        help="episodes each process flies in lockstep, one batched policy call per step (SB3/ONNX; default 64)",
+        help="episodes each process flies in lockstep, one batched policy call per step "
+        "(SB3/ONNX; default 64, at most the evaluation's episodes)",
     )
     p_eval.add_argument(
         "--seed-set",
@@ -124,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--task-episodes",
         type=int,
         default=None,
-        help="episodes per Ray task (default: --batch if the agent batches, else 1)",
+        help="episodes per Ray task (default: the lockstep width, at most 16, if the agent batches; else 1)",
     )
 
     p_table = sub.add_parser("table", help="the paper's Table II, III or IV from result directories / summary CSVs")

@@ -354,6 +354,9 @@ class Evaluator:
         if seed_set == "private" and salt is None:
             salt = salt_from_env()  # before loading anything: a missing secret is a one-line error
         self.seeds = seeds_for(seed_set, episodes, salt, SEED_PROTOCOL)
+        # Lockstep width: --batch, or the evaluation's own size when smaller (a 10-episode run computes no
+        # idle rows); fixed per evaluation, so a resumed one flies at the width it began with.
+        self.width = max(1, min(batch, len(self.env_ids) * len(self.seeds)))
         self.salt_sha256 = salt_sha256(salt) if seed_set == "private" else None
         self.agent_kwargs = agent_kwargs
         probe = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs)  # fail fast, here
@@ -434,7 +437,7 @@ class Evaluator:
         started = time.perf_counter()
         bar = tqdm(total=len(todo), desc=f"{self.agent_name}", disable=not progress, unit="ep")
         # Tasks of a few lockstep widths: every worker stays busy, and each record is written as it ends.
-        size = max(1, min(2 * self.batch, -(-len(todo) // self.workers)))
+        size = max(1, min(2 * self.width, -(-len(todo) // self.workers)))
         tasks = [todo[i : i + size] for i in range(0, len(todo), size)]
         if self.backend == "ray":
             self.done.update(run_on_ray(self, todo, bar.update))
@@ -442,7 +445,7 @@ class Evaluator:
             with SingleTorchThread():
                 _worker_init(self.agent_spec, self.renderer, self.trust_code, torch_threads(), self.agent_kwargs)
                 try:  # one lockstep over every episode: its slots idle only at the very end, not after each task
-                    self.done.update(_fly(todo, self.writer, self.batch, self.save_trajectories, lambda: bar.update(1)))
+                    self.done.update(_fly(todo, self.writer, self.width, self.save_trajectories, lambda: bar.update(1)))
                 finally:
                     _close_pool()
         else:
@@ -455,7 +458,7 @@ class Evaluator:
                 initargs=(self.agent_spec, self.renderer, self.trust_code, 1, self.agent_kwargs),
             ) as pool:
                 futures = {
-                    pool.submit(_fly, task, self.writer, self.batch, self.save_trajectories): len(task)
+                    pool.submit(_fly, task, self.writer, self.width, self.save_trajectories): len(task)
                     for task in tasks
                 }
                 for future in as_completed(futures):

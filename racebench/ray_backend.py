@@ -52,8 +52,8 @@ class RayOptions:
             a head node). ``None`` starts a private local instance of ``local_cpus`` CPUs, shut down afterwards.
             Ignored when this process has already called ``ray.init``.
         task_cpus: CPUs each evaluation task reserves (1: one episode stream per core).
-        task_episodes: episodes per evaluation task; ``None``: the lockstep width for agents that batch
-            (SB3, ONNX), else 1 (a lost worker then costs at most one episode).
+        task_episodes: episodes per evaluation task; ``None``: the lockstep width, at most 16, for agents
+            that batch (SB3, ONNX), else 1 (a lost worker then costs at most one episode).
         max_retries: times Ray re-runs a task whose worker process or node died.
         local_cpus: CPUs of the private local instance started when ``address`` is ``None``.
     """
@@ -148,6 +148,9 @@ def _fly_task(
     return [(writer.name(e, s), (records / writer.name(e, s)).read_bytes()) for e, s in jobs]
 
 
+RAY_TASK_EPISODES = 16  # default episodes per Ray task of a lockstep agent
+
+
 def run_evaluation(evaluator: Any, todo: list[tuple[str, int]], on_episodes: Callable[[int], None]) -> set[str]:
     """Fly ``todo`` of a :class:`~racebench.evaluation.Evaluator` as Ray tasks; return the record names written.
 
@@ -159,9 +162,10 @@ def run_evaluation(evaluator: Any, todo: list[tuple[str, int]], on_episodes: Cal
     if not todo:
         return set()
     size = options.task_episodes
-    if size is None:
-        batching = evaluator.batch > 1 and isinstance(evaluator.probe, BatchAgent)
-        size = evaluator.batch if batching else 1
+    if size is None:  # lockstep agents: tasks of the lockstep width, at most RAY_TASK_EPISODES (spread the work)
+        batching = evaluator.width > 1 and isinstance(evaluator.probe, BatchAgent)
+        size = min(evaluator.width, RAY_TASK_EPISODES) if batching else 1
+    width = min(evaluator.width, size)  # a task never computes rows for episodes it does not have
     tasks = [todo[i : i + size] for i in range(0, len(todo), size)]
     # Absolute paths: a Ray worker's working directory is not the driver's.
     writer = dataclasses.replace(evaluator.writer, out_dir=Path(evaluator.out_dir).resolve())
@@ -172,7 +176,7 @@ def run_evaluation(evaluator: Any, todo: list[tuple[str, int]], on_episodes: Cal
         refs = {
             remote.remote(
                 spec, evaluator.identity.sha256, evaluator.renderer, evaluator.trust_code, task, writer,
-                evaluator.batch, evaluator.save_trajectories, evaluator.agent_kwargs,
+                width, evaluator.save_trajectories, evaluator.agent_kwargs,
             ): len(task)
             for task in tasks
         }  # fmt: skip

@@ -64,7 +64,13 @@ def test_chunk_start_states_are_the_states_of_stepping_each_episode_in_order() -
     import gymnasium as gym
     import torch
 
-    from racebench.training.dagger import chunk_start_states, make_student, student_features, student_unroll
+    from racebench.training.dagger import (
+        chunk_start_states,
+        make_student,
+        sequence_loss,
+        student_features,
+        student_unroll,
+    )  # fmt: skip
 
     env = gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast")
     policy = make_student(env, seed=0).policy
@@ -91,6 +97,22 @@ def test_chunk_start_states_are_the_states_of_stepping_each_episode_in_order() -
             hidden = output[-1:]
     assert torch.allclose(states, stepped[first], atol=1e-5)
     assert torch.all(states[position == 0] == 0) and torch.any(states[position > 0] != 0)
+
+    # The training loss of a minibatch of chunks (full and short ones, in any order) is the mean squared error
+    # over their real steps of the actions stepped one at a time from each chunk's start state.
+    _, count, _ = chunks
+    pick = np.array([len(first) - 1, 0, 3, 5])
+    assert len(set(count[pick].tolist())) > 1  # short chunks among them: padding must be masked
+    loss = sequence_loss(policy, data, first[pick], count[pick], states[pick], 8)
+    errors = []
+    with torch.no_grad():
+        for c in pick:
+            hidden = states[c].view(1, 1, -1)
+            for i in range(first[c], first[c] + count[c]):
+                action, output = student_unroll(policy, features[i].view(1, 1, -1), hidden)
+                hidden = output[-1:]
+                errors.append(((action[0, 0] - torch.from_numpy(data.action[i])) ** 2).mean())
+    assert torch.allclose(loss, torch.stack(errors).mean(), atol=1e-6)
 
 
 def test_bad_settings_are_named() -> None:
@@ -135,6 +157,15 @@ def test_a_tiny_distillation_run(tmp_path: Path) -> None:
         np.testing.assert_allclose(evaluated, trained[0, 0].numpy().clip(-1, 1), atol=1e-6)
         obs, *_ = env.step(evaluated)
     env.close()
+
+
+def test_a_feed_forward_student(tmp_path: Path) -> None:
+    """--student vision-no-gru: the feed-forward network, trained on shuffled single steps."""
+    config = DaggerConfig(iterations=1, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=32,
+                          student="vision-no-gru")  # fmt: skip
+    summary = distill(config, tmp_path, eval_episodes=0)
+    assert np.isfinite(summary["last"]["loss"]) and summary["student"] == "vision-no-gru"
+    assert not SB3Agent(summary["checkpoint"], trust_code=True).recurrent
 
 
 def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path) -> None:

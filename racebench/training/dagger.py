@@ -350,6 +350,21 @@ def chunk_start_states(policy: Any, dataset: Dataset, chunks: tuple, batch: int 
     return states
 
 
+def sequence_loss(
+    policy: Any, dataset: Dataset, first: np.ndarray, count: np.ndarray, states: torch.Tensor, length: int
+) -> torch.Tensor:  # fmt: skip
+    """Mean squared error over the real steps of the chunks ``(first, count)``, each unrolled from its start
+    state in ``states`` ``(chunks, H)``; a chunk shorter than ``length`` is padded and its padding masked."""
+    offsets = np.arange(length)
+    steps = np.minimum(first[:, None] + offsets, first[:, None] + count[:, None] - 1)
+    batch = dataset.batch(steps.T.reshape(-1))  # time-major: (length * chunks)
+    target = batch.pop("action").view(length, len(first), -1)
+    features = student_features(policy, batch).view(length, len(first), -1)
+    actions, _ = student_unroll(policy, features, states[None])
+    mask = torch.from_numpy(offsets[:, None] < count[None, :]).unsqueeze(-1)
+    return ((actions - target) ** 2 * mask).sum() / (mask.sum() * target.shape[-1])
+
+
 def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng: np.random.Generator) -> float:
     """``config.epochs`` passes of minibatch MSE regression over the dataset; returns the last epoch's loss.
 
@@ -367,19 +382,12 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
         policy.set_training_mode(True)
         first, count, _ = chunks
         per_batch = max(1, config.batch_size // length)
-        offsets = np.arange(length)
         for _ in range(config.epochs):
             order = rng.permutation(len(first))
             losses = []
             for a in range(0, len(order), per_batch):
                 pick = order[a : a + per_batch]
-                steps = np.minimum(first[pick, None] + offsets, first[pick, None] + count[pick, None] - 1)
-                batch = dataset.batch(steps.T.reshape(-1))  # time-major: (length * chunks)
-                target = batch.pop("action").view(length, len(pick), -1)
-                features = student_features(policy, batch).view(length, len(pick), -1)
-                actions, _ = student_unroll(policy, features, states[pick][None])
-                mask = torch.from_numpy(offsets[:, None] < count[pick][None, :]).unsqueeze(-1)
-                error = ((actions - target) ** 2 * mask).sum() / (mask.sum() * target.shape[-1])
+                error = sequence_loss(policy, dataset, first[pick], count[pick], states[pick], length)
                 optimizer.zero_grad()
                 error.backward()
                 optimizer.step()

@@ -476,7 +476,9 @@ class ThreadsCallback(BaseCallback):
         return True
 
 
-CRITIC_PREFIXES: tuple[str, ...] = ("lstm_critic.", "critic.", "mlp_extractor.value_net.", "value_net.")
+CRITIC_PREFIXES: tuple[str, ...] = (
+    "lstm_critic.", "critic.", "mlp_extractor.value_net.", "value_net.", "vf_features_extractor.",
+)  # fmt: skip
 
 
 def critic_parameter(name: str) -> bool:
