@@ -74,7 +74,7 @@ SUITES: dict[str, list[str]] = {
 }
 SUITES["paper"] = SUITES["main"] + SUITES["density"] + SUITES["gates"]
 SEED_SET = "public"
-DEFAULT_BATCH = 64  # episodes flown in lockstep per process (learned agents); racebench bench measured 16/32/64
+DEFAULT_BATCH = 64  # episodes flown in lockstep per process (learned agents); widths 16/32/64 compared in README
 EPISODE_COLUMNS: tuple[str, ...] = RECORD_FIELDS  # episodes.csv: every record field
 _ID = re.compile(r"^RaceObs-(?P<track>[^-]+)(?:-(?P<variant>.+))?-v0$")
 

@@ -173,8 +173,7 @@ class Dataset:
         within its segment (0: the chunk starts a segment, so a recurrent state of zero). Chunks are in index
         order and cover every stored step exactly once.
         """
-        bounds = np.flatnonzero(self.starts[: self.size])
-        bounds = np.union1d(bounds, [0])
+        bounds = np.flatnonzero(self.starts[: self.size])  # index 0 is always one (add_segment)
         ends = np.append(bounds[1:], self.size)
         per_run = -(-(ends - bounds) // length)
         run = np.repeat(np.arange(len(bounds)), per_run)
