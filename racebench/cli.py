@@ -156,6 +156,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="output file, .png, .pdf or .svg (default under runs/)",
     )
     p_curves.add_argument("--smooth", type=int, default=20, help="rolling mean over this many updates (default 20)")
+    p_curves.add_argument(
+        "--success",
+        action="store_true",
+        help="training success vs environment steps and vs wall-clock instead (PPO and DAgger runs alike)",
+    )
+    p_curves.add_argument(
+        "--window-steps",
+        type=int,
+        default=50_000,
+        help="with --success: rolling mean over this many environment steps of each run (default 50000)",
+    )
     p_curves.add_argument("--dpi", type=int, default=300, help="resolution of a PNG in dots per inch (default 300)")
 
     p_render = sub.add_parser(
@@ -383,10 +394,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not written:
             raise SystemExit("racebench plot: no figure could be drawn from these results (see the reasons above)")
     elif args.command == "curves":
-        from racebench.plots import plot_training_curves
+        from racebench.plots import plot_success_curves, plot_training_curves
 
+        if args.smooth < 1 or args.window_steps < 1:
+            raise SystemExit("racebench curves: --smooth and --window-steps must be >= 1")
         try:
-            log.info(f"wrote {plot_training_curves(args.runs, args.out, args.smooth, args.dpi)}")
+            if args.success:
+                written = plot_success_curves(args.runs, args.out, args.window_steps, args.dpi)
+            else:
+                written = plot_training_curves(args.runs, args.out, args.smooth, args.dpi)
+            log.info(f"wrote {written}")
         except ValueError as exc:
             raise SystemExit(f"racebench curves: {exc}") from exc
     elif args.command == "render":

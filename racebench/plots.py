@@ -262,10 +262,18 @@ SB3_PROGRESS_COLUMNS: dict[str, str] = {
 def read_progress(csv_path: str | Path) -> pd.DataFrame:
     """A training run's ``progress.csv`` as ``timesteps``, ``mean_return``, ``success_rate``, ``level``.
 
-    Either ``racebench train``'s file or SB3's own (``time/total_timesteps``, ``rollout/ep_rew_mean`` and,
+    ``racebench train``'s file of a PPO run or of a DAgger run (``samples`` are its environment steps; it has
+    no return or level, which are NaN), or SB3's own (``time/total_timesteps``, ``rollout/ep_rew_mean`` and,
     when the env reports ``is_success``, ``rollout/success_rate``; it has no curriculum level, which is NaN).
     """
     progress = pd.read_csv(csv_path)
+    if {"iteration", "samples", "success_rate", "wall_s"} <= set(progress.columns):
+        # racebench train --config vision-distill (DAgger): a row per iteration; its success rate is the
+        # student's (mixed with the expert's actions by β early on) on the training scenes at full difficulty.
+        progress = progress.rename(columns={"samples": "timesteps"})
+        progress["mean_return"] = np.nan
+        progress["level"] = np.nan
+        return progress
     if {"time/total_timesteps", "rollout/ep_rew_mean"} <= set(progress.columns):
         progress = progress.rename(columns=SB3_PROGRESS_COLUMNS)
         for column in ("success_rate", "level"):
@@ -281,14 +289,9 @@ def read_progress(csv_path: str | Path) -> pd.DataFrame:
     return progress
 
 
-def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int = 20, dpi: int = DEFAULT_DPI) -> Path:
-    """The paper's Fig. 5 from training runs: mean episode return (rolling mean over ``smooth`` updates),
-    success rate from the track start, and curriculum level, against environment steps.
-
-    ``runs``: run directories (holding ``progress.csv``) or ``progress.csv`` files, of ``racebench train`` or of
-    SB3's CSV logger (:func:`read_progress`); each is labelled by its ``config.yaml`` name when present, else by
-    its directory name. The level panel is left out when no run has a curriculum.
-    """
+def _load_runs(runs: list[str | Path]) -> list[tuple[str, pd.DataFrame]]:
+    """``(label, progress)`` per run directory or ``progress.csv``; the label is the run's config name
+    (``config.yaml``, else ``summary.json``'s config) or its directory's name."""
     import yaml
 
     loaded = []
@@ -297,9 +300,66 @@ def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int =
         csv_path = run / "progress.csv" if run.is_dir() else run
         if not csv_path.is_file():
             raise ValueError(f"{run}: no progress.csv (is it a `racebench train` run directory?)")
-        config = csv_path.parent / "config.yaml"
-        label = yaml.safe_load(config.read_text()).get("name") if config.is_file() else csv_path.parent.name
+        config, summary = csv_path.parent / "config.yaml", csv_path.parent / "summary.json"
+        label = csv_path.parent.name
+        if config.is_file():
+            label = yaml.safe_load(config.read_text()).get("name") or label
+        elif summary.is_file():
+            named = json.loads(summary.read_text()).get("config", {})
+            label = named.get("name", label) if isinstance(named, dict) else label
         loaded.append((label, read_progress(csv_path)))
+    return loaded
+
+
+def plot_success_curves(
+    runs: list[str | Path], path: str | Path, window_steps: int = 50_000, dpi: int = DEFAULT_DPI
+) -> Path:
+    """Training success against environment steps (left) and against wall-clock time (right), one line per run.
+
+    For comparing methods by cost: a PPO run's success is its training episodes' (from the track start, at
+    the curriculum level of the moment: its promotions are marked), a DAgger run's the student's on the
+    training scenes. Each run is smoothed by a rolling mean over ``window_steps`` environment steps' worth of
+    its rows (PPO logs a row per update, DAgger per iteration of 25 k steps), so runs that log at different
+    rates are smoothed alike. Every run needs a ``wall_s`` column (``racebench train`` writes one).
+    """
+    loaded = _load_runs(runs)
+    for label, progress in loaded:
+        if "wall_s" not in progress:
+            raise ValueError(f"{label}: progress.csv has no wall_s column (wall-clock time is needed)")
+    fig, axes = plt.subplots(1, 2, figsize=(9.6, 3.6), sharey=True)
+    for label, progress in loaded:
+        rows = progress.dropna(subset=["success_rate"])
+        spacing = float(np.median(np.diff(rows["timesteps"]))) if len(rows) > 1 else float(window_steps)
+        window = max(1, round(window_steps / max(spacing, 1.0)))
+        success = 100 * rows["success_rate"].rolling(window=window, min_periods=1).mean()
+        (line,) = axes[0].plot(rows["timesteps"] / 1e6, success, label=label)
+        axes[1].plot(rows["wall_s"] / 60, success, color=line.get_color())
+        promoted = progress["level"].diff() > 0
+        for ax, x in ((axes[0], progress["timesteps"] / 1e6), (axes[1], progress["wall_s"] / 60)):
+            for at, level in zip(x[promoted], progress["level"][promoted], strict=True):
+                ax.axvline(at, color=line.get_color(), linestyle=":", linewidth=1)
+                ax.annotate(f"L{level:.0f}", (at, 100), xytext=(2, -10), textcoords="offset points",
+                            fontsize=7, color=line.get_color())  # fmt: skip
+    axes[0].set_xlabel("environment steps [millions]")
+    axes[1].set_xlabel("wall-clock [min]")
+    axes[0].set_ylabel("training success [%]")
+    axes[0].set_ylim(-2, 102)
+    axes[0].legend(loc="best", fontsize=8)
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.set_xlim(left=0)
+    return _save(fig, path, dpi)
+
+
+def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int = 20, dpi: int = DEFAULT_DPI) -> Path:
+    """The paper's Fig. 5 from training runs: mean episode return (rolling mean over ``smooth`` updates),
+    success rate from the track start, and curriculum level, against environment steps.
+
+    ``runs``: run directories (holding ``progress.csv``) or ``progress.csv`` files, of ``racebench train`` or of
+    SB3's CSV logger (:func:`read_progress`); each is labelled as :func:`_load_runs` says. The level panel is
+    left out when no run has a curriculum.
+    """
+    loaded = _load_runs(runs)
     levels = any(progress["level"].notna().any() for _, progress in loaded)
     rows, ratios = (3, [2, 1.4, 1]) if levels else (2, [2, 1.4])
     fig, axes = plt.subplots(rows, 1, figsize=(6.4, 6.4 if levels else 5.0), sharex=True, height_ratios=ratios)

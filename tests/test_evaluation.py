@@ -417,12 +417,12 @@ def test_lockstep_flies_the_same_episodes_as_one_at_a_time(tiny_ppo, tmp_path: P
     np.testing.assert_allclose(frames[1]["return"], frames[3]["return"], rtol=1e-5)
 
 
-
 def test_the_lockstep_width_is_at_most_the_evaluations_size(tmp_path: Path) -> None:
     """A 2 x 3-episode evaluation flies 6 slots, not --batch's 64 (no idle rows), whatever is left to fly."""
     evaluator = Evaluator("planner", ["RaceObs-S-v0", "RaceObs-J-v0"], episodes=3, out_dir=tmp_path, batch=64)
     assert evaluator.width == 6
     assert Evaluator("planner", ["RaceObs-S-v0"], episodes=100, out_dir=tmp_path, batch=64).width == 64
+
 
 BATCH_AGENTS = textwrap.dedent(
     """

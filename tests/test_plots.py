@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from PIL import Image
 
@@ -103,3 +104,34 @@ def test_curriculum_ids_are_plotted_when_present(tmp_path: Path) -> None:
     assert "curriculum level" in text and "not evaluated" in text  # Circle and J have no level results here
     with pytest.raises(ValueError, match="no results on the levels variants"):
         plots.plot_success_vs(read_summaries(RESULTS), "levels", tmp_path / "none.png")
+
+
+def test_success_curves_take_ppo_and_dagger_runs_alike(tmp_path: Path) -> None:
+    dagger = tmp_path / "distill"
+    dagger.mkdir()
+    (dagger / "summary.json").write_text('{"method": "dagger", "config": {"name": "my-distill"}}')
+    pd.DataFrame(
+        {"iteration": [0, 1, 2], "beta": [1.0, 0.5, 0.25], "episodes": [9, 9, 9], "success_rate": [1.0, 0.4, 0.6],
+         "mean_length": [90.0] * 3, "samples": [25_000, 50_000, 75_000], "loss": [0.1] * 3, "wall_s": [60, 120, 180]}
+    ).to_csv(dagger / "progress.csv", index=False)  # fmt: skip
+    progress = plots.read_progress(dagger / "progress.csv")
+    assert progress["timesteps"].tolist() == [25_000, 50_000, 75_000]  # DAgger's samples are its env steps
+    assert progress["level"].isna().all() and progress["mean_return"].isna().all()
+    ppo = tmp_path / "ppo"
+    ppo.mkdir()
+    pd.DataFrame(
+        {"timesteps": [2048, 4096, 6144, 8192], "episodes": [1, 2, 3, 4], "mean_return": [0.0] * 4,
+         "success_rate": [None, 0.0, 0.9, 0.2], "level": [1, 1, 2, 2], "samples_per_s": [1e3] * 4,
+         "wall_s": [2.0, 4.0, 6.0, 8.0]}
+    ).to_csv(ppo / "progress.csv", index=False)  # fmt: skip
+    assert [label for label, _ in plots._load_runs([dagger, ppo])] == ["my-distill", "ppo"]
+    out = plots.plot_success_curves([dagger, ppo], tmp_path / "success.svg")
+    svg = out.read_text()
+    assert "my-distill" in svg and "L2" in svg  # the PPO run's promotion is marked
+    assert cli.main(["-q", "curves", "--success", str(dagger), str(ppo), "--out", str(tmp_path / "s.png"),
+                     "--window-steps", "25000", "--dpi", "60"]) == 0  # fmt: skip
+    pd.read_csv(ppo / "progress.csv").drop(columns="wall_s").to_csv(ppo / "progress.csv", index=False)
+    with pytest.raises(SystemExit, match="^racebench curves: ppo: progress.csv has no wall_s"):
+        cli.main(["-q", "curves", "--success", str(ppo), "--out", str(tmp_path / "s.png")])
+    with pytest.raises(SystemExit, match="--window-steps must be >= 1"):
+        cli.main(["-q", "curves", "--success", str(dagger), "--window-steps", "0"])
