@@ -176,8 +176,11 @@ def _free_space(scene, radius: float = 0.0) -> _FreeSpace:
 
 
 def scene_clearance(scene, points: np.ndarray) -> np.ndarray:
-    """Distance from points ``(M, 3)`` to the nearest gate bar, obstacle, the ground or an arena wall."""
-    return _free_space(scene).clearance(points)
+    """Distance from points ``(M, 3)`` to the nearest gate bar, obstacle, the ground or an arena wall.
+
+    Compiled (:meth:`~racebench.scene.Scene.clearance`): smoothing a path asks it thousands of times per plan.
+    """
+    return scene.clearance(points, scene.arena_low, scene.arena_high)
 
 
 def pull_taut(scene, polyline: np.ndarray, radius: float) -> np.ndarray:

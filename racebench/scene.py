@@ -189,6 +189,27 @@ class Scene:
             np.ascontiguousarray(rounding),
         )
 
+    def clearance(self, points: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+        """Distance from points ``(M, 3)`` to the nearest primitive or face of the box ``[low, high]``.
+
+        :meth:`distance` (same formula, compiled) combined with the distance to the walls of the volume, for
+        the many small queries of path smoothing. A primitive is skipped when a lower bound of its distance
+        (vertical gap, then footprint circle) is no better than the nearest so far, so the result is the
+        same minimum up to rounding in the last bit. Not used where a layout is decided (the generator's
+        and corridor search's grids use :meth:`distance`), so no scene depends on it.
+        """
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points must have shape (M, 3), got {pts.shape}")
+        low, high = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+        return _clearance_batch(pts, *self._point_tables, self._footprint_reach, low, high)
+
+    @cached_property
+    def _footprint_reach(self) -> np.ndarray:
+        """Radius of each primitive's footprint circle about its centre (for :meth:`clearance`'s culling)."""
+        _, half, _, _, rounding = self._point_tables
+        return np.sqrt(half[:, 0] ** 2 + half[:, 1] ** 2) + rounding
+
     def point_distance(self, x: float, y: float, z: float) -> float:
         """:meth:`distance` of the single point ``(x, y, z)``, as a float.
 
@@ -282,3 +303,42 @@ def _point_distance(
         horizontal = max(math.sqrt(lx * lx + ly * ly) - rounding[k], 0.0)
         best = min(best, horizontal * horizontal + lz * lz)
     return math.sqrt(best)
+
+
+@njit(cache=True)
+def _clearance_batch(
+    points: np.ndarray,
+    centre: np.ndarray,
+    half: np.ndarray,
+    cos: np.ndarray,
+    sin: np.ndarray,
+    rounding: np.ndarray,
+    reach: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+) -> np.ndarray:
+    """:meth:`Scene.clearance`: per point, the walls' distance, then :func:`_point_distance`'s formula over
+    the primitives whose lower bound can still beat the best so far (squared distances throughout)."""
+    out = np.empty(len(points))
+    for i in range(len(points)):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        wall = min(x - low[0], y - low[1], z - low[2], high[0] - x, high[1] - y, high[2] - z)
+        if wall <= 0.0:
+            out[i] = wall
+            continue
+        best = wall * wall
+        for k in range(len(rounding)):
+            dx, dy = x - centre[k, 0], y - centre[k, 1]
+            lz = max(abs(z - centre[k, 2]) - half[k, 2], 0.0)
+            lz2 = lz * lz
+            if lz2 >= best:
+                continue
+            gap = math.sqrt(dx * dx + dy * dy) - reach[k]
+            if gap > 0.0 and gap * gap + lz2 >= best:
+                continue
+            lx = max(abs(cos[k] * dx + sin[k] * dy) - half[k, 0], 0.0)
+            ly = max(abs(-sin[k] * dx + cos[k] * dy) - half[k, 1], 0.0)
+            horizontal = max(math.sqrt(lx * lx + ly * ly) - rounding[k], 0.0)
+            best = min(best, horizontal * horizontal + lz2)
+        out[i] = math.sqrt(best)
+    return out

@@ -507,3 +507,27 @@ def test_scene_distance_matches_brute_force_and_empty_scene_is_infinite() -> Non
     low, high = arena_bounds(track)
     nothing = Scene(track, (), (), track.start.center, 0.0, low, high)
     assert np.all(np.isinf(nothing.distance(points[:3])))
+
+
+def test_scene_clearance_is_the_distance_to_geometry_and_walls() -> None:
+    """The compiled, culled query equals min(brute-force distance, distance to the volume's faces)."""
+    gen = ObstacleGenerator(_track("J"), density=5, kind="mixed", gate_shift=1.0)
+    scene = gen.sample_scene(np.random.default_rng(5))
+    rng = np.random.default_rng(6)
+    low, high = scene.arena_low, scene.arena_high
+    spread = rng.uniform(low - 0.5, high + 0.5, size=(20000, 3))  # some outside the volume: negative
+    centre, half, _, _ = scene.primitive_arrays
+    pick = rng.integers(len(centre), size=20000)
+    close = centre[pick] + rng.normal(0.0, 0.7, size=(20000, 3)) * (half[pick] + 0.1)
+    for points in (spread, close):  # far from everything, and where culling must keep the nearest primitive
+        walls = np.minimum((points - low).min(axis=1), (high - points).min(axis=1))
+        expected = np.minimum(_brute_distance(scene, points), walls)
+        np.testing.assert_allclose(scene.clearance(points, low, high), expected, rtol=0, atol=1e-12)
+    assert (scene.clearance(spread, low, high) < 0).any() and (scene.clearance(close, low, high) == 0).any()
+    track = _track("S")
+    nothing = Scene(track, (), (), track.start.center, 0.0, *arena_bounds(track))
+    inside = np.array([[0.0, 0.0, 1.0]])
+    expected = np.minimum((inside - nothing.arena_low).min(), (nothing.arena_high - inside).min())
+    assert nothing.clearance(inside, nothing.arena_low, nothing.arena_high)[0] == pytest.approx(expected)
+    with pytest.raises(ValueError, match="shape"):
+        scene.clearance(np.zeros(3), low, high)
