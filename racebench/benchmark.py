@@ -518,6 +518,16 @@ def _bench_parts(rec: _Recorder, s: BenchSettings) -> None:
     for k in range(10):
         env.reset_state(seed=s.seed + k)
     reset = (time.perf_counter() - start) / 10 * 1e6
+    # The fast expert plans at every episode start: in DAgger that is once per collected episode.
+    from racebench.planner import FastPlannerAgent
+
+    expert = FastPlannerAgent()
+    plans = 3 if s.single_steps < 400 else 10
+    start = time.perf_counter()
+    for k in range(plans):
+        env.reset_state(seed=s.seed + k)
+        expert.reset(env=env, seed=s.seed + k)
+    plan = (time.perf_counter() - start) / plans * 1e6 - reset
     env.close()
     rec.add("parts", "physics substep, PyBullet calls only", substep_c, "us", "step + state query")
     rec.add("parts", "collision check (swept sphere, 1 substep)", collision, "us", "exact geometry, every substep")
@@ -533,6 +543,7 @@ def _bench_parts(rec: _Recorder, s: BenchSettings) -> None:
     rec.add("parts", "depth render (raycast, 1 camera)", render, "us")
     rec.add("parts", "depth normalise + Gaussian noise", noise, "us", "4096 normal draws")
     rec.add("parts", "reset (new scene: obstacles + corridor check)", reset, "us")
+    rec.add("parts", "planner-fast plan at reset (path, smoothing, speeds)", plan, "us", f"{plans} scenes, minus reset")
 
 
 def run_benchmark(
