@@ -347,6 +347,22 @@ def test_threads_callback_switches_around_the_update() -> None:
         torch.set_num_threads(before)
 
 
+def test_importing_racebench_makes_idle_openmp_threads_sleep_unless_the_user_chose() -> None:
+    """OMP_WAIT_POLICY=PASSIVE is set by ``import racebench`` before torch loads OpenMP; a user's value is kept."""
+    import os
+    import subprocess
+    import sys
+
+    script = "import os, racebench, torch; print(os.environ['OMP_WAIT_POLICY'])"
+    clean = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    seen = subprocess.run([sys.executable, "-c", script], env=clean, capture_output=True, text=True, check=True)
+    assert seen.stdout.split()[-1] == "PASSIVE"
+    chosen = subprocess.run(
+        [sys.executable, "-c", script], env={**clean, "OMP_WAIT_POLICY": "ACTIVE"}, capture_output=True, text=True
+    )
+    assert chosen.stdout.split()[-1] == "ACTIVE"
+
+
 def test_the_fast_variant_differs_from_the_paper_config_only_by_its_two_switches() -> None:
     """vision-ppo-fast: an MLP critic (no critic GRU) and 2 epochs; the actor and everything else as vision-ppo."""
     paper, fast = TrainConfig.from_yaml("vision-ppo"), TrainConfig.from_yaml("vision-ppo-fast")
