@@ -523,6 +523,8 @@ def _bench_parts(rec: _Recorder, s: BenchSettings) -> None:
 
     expert = FastPlannerAgent()
     plans = 3 if s.single_steps < 400 else 10
+    env.reset_state(seed=s.seed)
+    expert.reset(env=env, seed=s.seed)  # warm-up: compiled kernels load, scipy's spline imports
     start = time.perf_counter()
     for k in range(plans):
         env.reset_state(seed=s.seed + k)

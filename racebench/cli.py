@@ -152,8 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_curves.add_argument("runs", nargs="+", help="run directories or their progress.csv files")
     p_curves.add_argument(
         "--out",
-        default="runs/figures/training_curves.png",
-        help="output file, .png, .pdf or .svg (default under runs/)",
+        default=None,
+        help="output file, .png, .pdf or .svg (default runs/figures/training_curves.png, or success_curves.png)",
     )
     p_curves.add_argument("--smooth", type=int, default=20, help="rolling mean over this many updates (default 20)")
     p_curves.add_argument(
@@ -400,9 +400,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise SystemExit("racebench curves: --smooth and --window-steps must be >= 1")
         try:
             if args.success:
-                written = plot_success_curves(args.runs, args.out, args.window_steps, args.dpi)
+                out = args.out or "runs/figures/success_curves.png"
+                written = plot_success_curves(args.runs, out, args.window_steps, args.dpi)
             else:
-                written = plot_training_curves(args.runs, args.out, args.smooth, args.dpi)
+                out = args.out or "runs/figures/training_curves.png"
+                written = plot_training_curves(args.runs, out, args.smooth, args.dpi)
             log.info(f"wrote {written}")
         except ValueError as exc:
             raise SystemExit(f"racebench curves: {exc}") from exc

@@ -256,13 +256,14 @@ SB3_PROGRESS_COLUMNS: dict[str, str] = {
     "time/total_timesteps": "timesteps",
     "rollout/ep_rew_mean": "mean_return",
     "rollout/success_rate": "success_rate",
+    "time/time_elapsed": "wall_s",
 }
 
 
 def read_progress(csv_path: str | Path) -> pd.DataFrame:
     """A training run's ``progress.csv`` as ``timesteps``, ``mean_return``, ``success_rate``, ``level``.
 
-    ``racebench train``'s file of a PPO run or of a DAgger run (``samples`` are its environment steps; it has
+    ``racebench train``'s file of a PPO run or of a DAgger run (``env_steps`` are its environment steps; it has
     no return or level, which are NaN), or SB3's own (``time/total_timesteps``, ``rollout/ep_rew_mean`` and,
     when the env reports ``is_success``, ``rollout/success_rate``; it has no curriculum level, which is NaN).
     """
@@ -270,7 +271,9 @@ def read_progress(csv_path: str | Path) -> pd.DataFrame:
     if {"iteration", "samples", "success_rate", "wall_s"} <= set(progress.columns):
         # racebench train --config vision-distill (DAgger): a row per iteration; its success rate is the
         # student's (mixed with the expert's actions by β early on) on the training scenes at full difficulty.
-        progress = progress.rename(columns={"samples": "timesteps"})
+        # env_steps counts every step flown; files written before it existed have only samples, the
+        # aggregate's size, which equals the steps flown until the aggregate is full.
+        progress = progress.rename(columns={"env_steps" if "env_steps" in progress else "samples": "timesteps"})
         progress["mean_return"] = np.nan
         progress["level"] = np.nan
         return progress
@@ -326,14 +329,17 @@ def plot_success_curves(
     for label, progress in loaded:
         if "wall_s" not in progress:
             raise ValueError(f"{label}: progress.csv has no wall_s column (wall-clock time is needed)")
+        if progress["success_rate"].isna().all():
+            raise ValueError(f"{label}: progress.csv has no success rate (does the env report is_success?)")
     fig, axes = plt.subplots(1, 2, figsize=(9.6, 3.6), sharey=True)
     for label, progress in loaded:
         rows = progress.dropna(subset=["success_rate"])
         spacing = float(np.median(np.diff(rows["timesteps"]))) if len(rows) > 1 else float(window_steps)
         window = max(1, round(window_steps / max(spacing, 1.0)))
         success = 100 * rows["success_rate"].rolling(window=window, min_periods=1).mean()
-        (line,) = axes[0].plot(rows["timesteps"] / 1e6, success, label=label)
-        axes[1].plot(rows["wall_s"] / 60, success, color=line.get_color())
+        marker = "o" if len(rows) == 1 else None  # a single row is a point, not a line
+        (line,) = axes[0].plot(rows["timesteps"] / 1e6, success, label=label, marker=marker)
+        axes[1].plot(rows["wall_s"] / 60, success, color=line.get_color(), marker=marker)
         promoted = progress["level"].diff() > 0
         for ax, x in ((axes[0], progress["timesteps"] / 1e6), (axes[1], progress["wall_s"] / 60)):
             for at, level in zip(x[promoted], progress["level"][promoted], strict=True):

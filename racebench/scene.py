@@ -195,13 +195,16 @@ class Scene:
         :meth:`distance` (same formula, compiled) combined with the distance to the walls of the volume, for
         the many small queries of path smoothing. A primitive is skipped when a lower bound of its distance
         (vertical gap, then footprint circle) is no better than the nearest so far, so the result is the
-        same minimum up to rounding in the last bit. Not used where a layout is decided (the generator's
+        same minimum up to rounding in the last bit. Negative outside the volume, NaN for a non-finite point.
+        Not used where a layout is decided (the generator's
         and corridor search's grids use :meth:`distance`), so no scene depends on it.
         """
         pts = np.ascontiguousarray(points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"points must have shape (M, 3), got {pts.shape}")
         low, high = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+        if low.shape != (3,) or high.shape != (3,):
+            raise ValueError(f"low and high must have shape (3,), got {low.shape} and {high.shape}")
         return _clearance_batch(pts, *self._point_tables, self._footprint_reach, low, high)
 
     @cached_property
@@ -322,6 +325,9 @@ def _clearance_batch(
     out = np.empty(len(points))
     for i in range(len(points)):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            out[i] = math.nan  # min() below would drop a NaN depending on the order of its arguments
+            continue
         wall = min(x - low[0], y - low[1], z - low[2], high[0] - x, high[1] - y, high[2] - z)
         if wall <= 0.0:
             out[i] = wall

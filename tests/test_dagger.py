@@ -130,6 +130,7 @@ def test_a_tiny_distillation_run(tmp_path: Path) -> None:
     progress = pd.read_csv(tmp_path / "progress.csv")
     assert progress["beta"].tolist() == [1.0, 0.5]  # the teacher flies first, then less and less
     assert progress["samples"].tolist() == [256, 512]  # every step labelled, aggregated
+    assert progress["env_steps"].tolist() == [256, 512]  # the steps flown (samples stop at max_samples)
     assert np.isfinite(progress["loss"]).all()
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["teacher"] == "planner-fast" and saved["eval"]["n"] == 1  # the fast expert by default
@@ -182,7 +183,7 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
     resumed = distill(config, tmp_path / "parts", eval_episodes=0, resume=True)
     a, b = (SB3Agent(s["checkpoint"], trust_code=True).model.policy.state_dict() for s in (whole, resumed))
     assert all(torch.equal(a[k], b[k]) for k in a)  # bit for bit: same labels, same minibatches, same Adam state
-    columns = ["iteration", "beta", "episodes", "samples", "loss"]
+    columns = ["iteration", "beta", "episodes", "samples", "env_steps", "loss"]
     rows = [pd.read_csv(tmp_path / d / "progress.csv")[columns] for d in ("whole", "parts")]
     pd.testing.assert_frame_equal(*rows)
     assert not list((tmp_path / "parts").glob(f"{RESUME_DIR}.*"))  # no partial or old state left behind

@@ -531,3 +531,7 @@ def test_scene_clearance_is_the_distance_to_geometry_and_walls() -> None:
     assert nothing.clearance(inside, nothing.arena_low, nothing.arena_high)[0] == pytest.approx(expected)
     with pytest.raises(ValueError, match="shape"):
         scene.clearance(np.zeros(3), low, high)
+    with pytest.raises(ValueError, match="low and high"):
+        scene.clearance(spread[:2], low[:2], high)
+    broken = np.array([[np.nan, 0.0, 1.0], [0.0, np.inf, 1.0], [0.0, 0.0, np.nan]])
+    assert np.isnan(scene.clearance(broken, low, high)).all()  # never a finite clearance for a broken point

@@ -89,6 +89,8 @@ def test_curves_read_sb3s_own_progress_csv(tmp_path: Path) -> None:
     assert "rollout/success_rate" in (run / "progress.csv").read_text()  # the env's is_success reaches SB3
     out = plots.plot_training_curves([run], tmp_path / "curves.pdf")
     assert out.read_bytes().startswith(b"%PDF")
+    assert progress["wall_s"].is_monotonic_increasing  # SB3's time/time_elapsed: --success reads it too
+    assert plots.plot_success_curves([run], tmp_path / "success.png", dpi=60).is_file()
     assert cli.main(["-q", "curves", str(run), "--out", str(tmp_path / "c.png"), "--dpi", "60"]) == 0
     with pytest.raises(SystemExit, match="^racebench curves: .*png, pdf, svg"):
         cli.main(["-q", "curves", str(run), "--out", str(tmp_path / "c.jpg")])
@@ -133,5 +135,8 @@ def test_success_curves_take_ppo_and_dagger_runs_alike(tmp_path: Path) -> None:
     pd.read_csv(ppo / "progress.csv").drop(columns="wall_s").to_csv(ppo / "progress.csv", index=False)
     with pytest.raises(SystemExit, match="^racebench curves: ppo: progress.csv has no wall_s"):
         cli.main(["-q", "curves", "--success", str(ppo), "--out", str(tmp_path / "s.png")])
+    pd.read_csv(dagger / "progress.csv").assign(success_rate=np.nan).to_csv(dagger / "progress.csv", index=False)
+    with pytest.raises(SystemExit, match="^racebench curves: my-distill: progress.csv has no success rate"):
+        cli.main(["-q", "curves", "--success", str(dagger), "--out", str(tmp_path / "s.png")])
     with pytest.raises(SystemExit, match="--window-steps must be >= 1"):
         cli.main(["-q", "curves", "--success", str(dagger), "--window-steps", "0"])

@@ -358,7 +358,11 @@ def test_importing_racebench_makes_idle_openmp_threads_sleep_unless_the_user_cho
     seen = subprocess.run([sys.executable, "-c", script], env=clean, capture_output=True, text=True, check=True)
     assert seen.stdout.split()[-1] == "PASSIVE"
     chosen = subprocess.run(
-        [sys.executable, "-c", script], env={**clean, "OMP_WAIT_POLICY": "ACTIVE"}, capture_output=True, text=True
+        [sys.executable, "-c", script],
+        env={**clean, "OMP_WAIT_POLICY": "ACTIVE"},
+        capture_output=True,
+        text=True,
+        check=True,
     )
     assert chosen.stdout.split()[-1] == "ACTIVE"
 

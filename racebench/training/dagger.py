@@ -316,6 +316,7 @@ def collect(
     for i in range(len(envs)):
         store(i)
     return {
+        "steps": taken,
         "episodes": len(successes),
         "success_rate": float(np.mean(successes)) if successes else float("nan"),
         "mean_length": float(np.mean(lengths)) if lengths else float("nan"),
@@ -538,6 +539,8 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         flown = collect(envs, teachers, policy, beta, config.steps_per_iteration, rng, seeds, dataset)
         torch.set_num_threads(config.update_threads)
         loss = fit(policy, dataset, config, optimizer, rng)
+        # env_steps: every step flown so far (samples, the aggregate's size, stops growing at max_samples)
+        flown["env_steps"] = flown.pop("steps") + (int(rows[-1].get("env_steps", rows[-1]["samples"])) if rows else 0)
         rows.append({"iteration": k, "beta": beta, **flown, "samples": dataset.size, "loss": loss,
                      "wall_s": round(time.perf_counter() - started, 1)})  # fmt: skip
         atomic_write(out / "progress.csv", pd.DataFrame(rows).to_csv(index=False))
@@ -554,8 +557,8 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         "config": asdict(config),
         "checkpoint": str(checkpoint),
         "wall_s": round(time.perf_counter() - started, 1),
-        "env_steps": config.iterations * config.steps_per_iteration,
-        "timesteps": config.iterations * config.steps_per_iteration,  # as a PPO run's summary.json says it
+        "env_steps": int(rows[-1]["env_steps"]),
+        "timesteps": int(rows[-1]["env_steps"]),  # as a PPO run's summary.json says it
         "last": rows[-1],
     }
     if eval_episodes > 0:
