@@ -122,6 +122,20 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(seed=1_000_000).validate()
     with pytest.raises(ValueError, match="teacher"):
         DaggerConfig(teacher="hover").validate()  # not a privileged planner: cannot label every state
+    with pytest.raises(ValueError, match="teacher_gate_clearance must be in"):
+        DaggerConfig(teacher_gate_clearance=0.6).validate()  # beyond the opening's centre
+    with pytest.raises(ValueError, match="teacher planner-fast only"):
+        DaggerConfig(teacher="planner", teacher_gate_clearance=0.5).validate()
+
+
+def test_the_teacher_is_built_with_its_gate_clearance() -> None:
+    from racebench.planner import FastPlannerAgent, PlannerAgent
+    from racebench.training.dagger import make_teacher
+
+    centred = make_teacher(DaggerConfig(teacher_gate_clearance=0.5))
+    assert isinstance(centred, FastPlannerAgent) and centred.gate_clearance == 0.5
+    assert make_teacher(DaggerConfig()).gate_clearance == FastPlannerAgent().gate_clearance == 0.4
+    assert isinstance(make_teacher(DaggerConfig(teacher="planner")), PlannerAgent)
 
 
 def test_a_tiny_distillation_run(tmp_path: Path) -> None:

@@ -121,3 +121,26 @@ def test_the_ab_report_reads_run_folders_and_applies_the_stated_rule(tmp_path) -
         state.write_text(state.read_text().replace("1900000", "2100000"))
     table = pd.DataFrame([report.run_row(p) for p in sorted(tmp_path.iterdir())])
     assert report.decide(table, "vision-ppo", "vision-ppo-fast").endswith("stays a named variant")
+
+
+def test_gate_crossings_finds_where_a_policy_crosses_each_gate(tmp_path, monkeypatch, capsys) -> None:
+    """baselines/gate_crossings.py on the expert's own saved flights: it crosses where it planned to."""
+    from racebench import cli
+
+    out = tmp_path / "eval"
+    assert cli.main(["-q", "evaluate", "--agent", "planner-fast", "--envs", "RaceObs-S-v0", "--episodes", "2",
+                     "--out", str(out), "--save-trajectories"]) == 0  # fmt: skip
+    spec = importlib.util.spec_from_file_location("gate_crossings", ROOT / "baselines" / "gate_crossings.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    monkeypatch.setattr(sys, "argv", ["gate_crossings.py", str(out), "--env", "RaceObs-S-v0"])
+    capsys.readouterr()
+    script.main()
+    lines = capsys.readouterr().out.strip().splitlines()[2:]
+    assert [line.split(", ")[:3] for line in lines] == [[str(g), "2", "0"] for g in range(4)]  # 4 gates, no hit
+    for line in lines:  # flown within a few cm of the planned line at every gate
+        cells = [float(c.split(" ")[0]) for c in line.split(", ")[3:]]
+        assert abs(cells[0] - cells[2]) < 0.08 and abs(cells[1] - cells[3]) < 0.08, line
+    monkeypatch.setattr(sys, "argv", ["gate_crossings.py", str(tmp_path)])
+    with pytest.raises(SystemExit, match="no trajectories"):
+        script.main()

@@ -22,6 +22,26 @@ from racebench.rollout import run_episode
 from racebench.track import Gate
 
 
+def test_a_larger_gate_clearance_crosses_the_openings_nearer_their_centres():
+    """gate_clearance 0.5 m (the 1 m opening's centre) against the default 0.4: the planned line passes every
+    gate of the same scenes closer to its centre on average, and never beyond what its clearance allows."""
+    env = gym.make("RaceObs-S-v0").unwrapped
+    offsets: dict[float, list[float]] = {0.4: [], 0.5: []}
+    for seed in range(3):
+        env.reset(seed=seed)
+        for wanted in offsets:
+            planner = FastPlannerAgent(gate_clearance=wanted)
+            planner.reset(env=env)
+            for gate, k in zip(env.scene.gates, gate_crossings(planner.path, env.scene.gates), strict=True):
+                a, b = planner.path[k], planner.path[k + 1]
+                t = float((gate.center - a) @ gate.normal / ((b - a) @ gate.normal))
+                off = a + t * (b - a) - gate.center
+                offsets[wanted].append(float(np.abs(off - (off @ gate.normal) * gate.normal).max()))
+    env.close()
+    assert max(offsets[0.4]) <= 0.5 - 0.32 + 1e-6  # within the default floor everywhere
+    assert np.mean(offsets[0.5]) < np.mean(offsets[0.4])
+
+
 def test_straight_line_from_rest_is_constant_acceleration():
     # No curvature, no drag: the fastest profile from rest is v = sqrt(2 a s), capped at max_speed.
     arc = np.arange(0.0, 20.0, 0.05)

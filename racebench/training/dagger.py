@@ -73,6 +73,9 @@ class DaggerConfig:
     seed: int = 0
     update_threads: int = 2
     teacher: str = "planner-fast"  # a privileged built-in: "planner-fast" (the fast expert) or "planner"
+    # planner-fast's wanted clearance at gates (FastPlannerAgent.gate_clearance): 0.5 m crosses the opening's
+    # centre, leaving a student that cuts the line more room to the bars
+    teacher_gate_clearance: float = 0.4
     student: str = "vision-ppo"  # the PPO baseline config whose network the student is (vision-ppo: the paper's)
     sequence_length: int = 32  # truncated-BPTT chunk of a recurrent student, in steps
 
@@ -123,6 +126,11 @@ class DaggerConfig:
             (0 <= self.seed < EVAL_SEED_BASE, f"seed must be in [0, {EVAL_SEED_BASE})"),
             (self.teacher in TEACHERS, f"teacher must be one of {TEACHERS}, got {self.teacher!r}"),
             (self.sequence_length >= 1, "sequence_length must be >= 1"),
+            (0.0 < self.teacher_gate_clearance <= 0.5, "teacher_gate_clearance must be in (0, 0.5] m"),
+            (
+                self.teacher == "planner-fast" or self.teacher_gate_clearance == 0.4,
+                "teacher_gate_clearance applies to teacher planner-fast only",
+            ),
         ]
         checks.append((self.update_threads >= 1, "update_threads must be >= 1"))
         for ok, message in checks:
@@ -323,6 +331,13 @@ def collect(
     }
 
 
+def make_teacher(config: DaggerConfig) -> PlannerAgent | FastPlannerAgent:
+    """The config's teacher: the named privileged built-in, with ``teacher_gate_clearance`` for planner-fast."""
+    if config.teacher == "planner-fast":
+        return FastPlannerAgent(gate_clearance=config.teacher_gate_clearance)
+    return load_agent(config.teacher)
+
+
 def chunk_start_states(policy: Any, dataset: Dataset, chunks: tuple, batch: int = 4096) -> torch.Tensor:
     """The GRU state each chunk starts from under the current student: ``(n_chunks, H)``.
 
@@ -508,7 +523,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         for _ in range(config.n_envs)
     ]
     envs = [m.unwrapped for m in made]
-    teachers = [load_agent(config.teacher) for _ in envs]
+    teachers = [make_teacher(config) for _ in envs]
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     policy_model = make_student(made[0], config.seed, config.student)
