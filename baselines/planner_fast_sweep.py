@@ -1,6 +1,9 @@
 """Fly ``planner-fast`` with other settings on training seeds (tuning never touches the evaluation seeds).
 
-    python baselines/planner_fast_sweep.py --set max_accel=10,13 > baselines/experiments/planner_fast_accel.txt
+    python baselines/planner_fast_sweep.py --set max_accel=10,13 thrust_accel=none braking_jerk=none \
+        > baselines/experiments/planner_fast_accel.txt  # v2's friction-circle profile
+    python baselines/planner_fast_sweep.py --seeds 60 --set thrust_accel=none,15 braking_jerk=none,60 \
+        > baselines/experiments/planner_fast_profile.txt
 
 Prints, per env id and setting: successes / episodes with the 95 % Wilson interval, the mean lap time of the
 successful laps and the crash reasons of the others.
@@ -20,15 +23,16 @@ from racebench.rollout import run_episode
 from racebench.statistics import wilson_interval
 
 
-def parse_settings(items: list[str]) -> dict[str, list[float]]:
-    """``["max_accel=10,13", ...]`` → ``{"max_accel": [10.0, 13.0], ...}``; a one-line error on bad input."""
+def parse_settings(items: list[str]) -> dict[str, list[float | None]]:
+    """``["max_accel=10,13", "braking_jerk=none,60"]`` → ``{"max_accel": [10.0, 13.0], "braking_jerk": [None,
+    60.0]}`` (``none`` turns an optional stage off); a one-line error on bad input."""
     grid = {}
     for item in items:
         name, _, values = item.partition("=")
         if not values or not hasattr(FastPlannerAgent(), name):
             raise SystemExit(f"planner_fast_sweep: expected NAME=V1,V2,... naming a planner setting, got {item!r}")
         try:
-            grid[name] = [float(v) for v in values.split(",")]
+            grid[name] = [None if v.strip().lower() == "none" else float(v) for v in values.split(",")]
         except ValueError:
             raise SystemExit(f"planner_fast_sweep: {name}: expected comma-separated numbers, got {values!r}") from None
     return grid
@@ -38,7 +42,8 @@ def main() -> None:
     """Fly every combination of the given settings on every id and print one line each."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--envs", nargs="+", default=["RaceObs-S-v0", "RaceObs-Circle-v0", "RaceObs-J-v0"])
-    parser.add_argument("--seeds", type=int, default=20, help="training seeds 0 .. N-1 (default 20)")
+    parser.add_argument("--seeds", type=int, default=20, help="number of training seeds (default 20)")
+    parser.add_argument("--first-seed", type=int, default=0, help="first training seed (default 0)")
     parser.add_argument("--set", nargs="+", default=[], metavar="NAME=V1,V2", help="settings to vary")
     args = parser.parse_args()
     grid = parse_settings(args.set)
@@ -48,7 +53,7 @@ def main() -> None:
         for values in itertools.product(*grid.values()):
             setting = dict(zip(grid, values, strict=True))
             agent = FastPlannerAgent(**setting)
-            results = [run_episode(agent, env, seed) for seed in range(args.seeds)]
+            results = [run_episode(agent, env, seed) for seed in range(args.first_seed, args.first_seed + args.seeds)]
             laps = [r["lap_time"] for r in results if r["success"]]
             low, high = wilson_interval(len(laps), len(results))
             lap = f"{np.mean(laps):.2f}" if laps else "-"

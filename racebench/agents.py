@@ -56,7 +56,10 @@ BUILTIN_PRIVILEGED: dict[str, bool] = {
 #: Code version of each built-in agent, part of its policy hash: bump it when the agent's behaviour changes.
 #: planner-fast v2: compiled clearance queries in its path smoothing, ~2x faster planning; its paths differ from
 #: v1's in the last bits (≤ 1e-13 m), which a closed loop may amplify, so its records were flown anew.
-BUILTIN_VERSIONS: dict[str, int] = {"random": 1, "hover": 1, "planner": 1, "planner-fast": 2, "follow": 1}
+#: planner-fast v3: speed profile under a thrust budget (gravity and drag included) with jerk-limited braking
+#: onsets, instead of v2's 10 m/s² friction circle; ``FastPlannerAgent(thrust_accel=None, braking_jerk=None)``
+#: is v2.
+BUILTIN_VERSIONS: dict[str, int] = {"random": 1, "hover": 1, "planner": 1, "planner-fast": 3, "follow": 1}
 #: sha256 of the first-party checkpoints shipped in ``baselines/checkpoints`` -> their path under it. They load
 #: without ``trust_code`` (``tests/test_checkpoints.py`` keeps this list and the committed files in step).
 TRUSTED_CHECKPOINTS: dict[str, str] = {

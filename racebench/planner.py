@@ -104,6 +104,27 @@ class PlannerAgent:
         self.path: np.ndarray | None = None
         self._fallback = GateFollower(speed=speed)
 
+    def _speed_profile(self, arc, tangent, curvature, cap, start_speed, drag, gravity) -> np.ndarray:
+        """The speed profile under ``cap``: minimum-time under the acceleration or thrust budget, then
+        smoothed where the acceleration switches."""
+        if self.thrust_accel is None:
+            speeds = minimum_time_speeds(arc, curvature, self.max_accel, cap, start_speed, drag)
+        else:
+            speeds = thrust_limited_speeds(arc, tangent, curvature, self.thrust_accel, cap, start_speed, drag, gravity)
+        if self.braking_jerk is not None:
+            speeds = limit_braking_onset(speeds, arc, self.braking_jerk)
+        return limit_jerk(speeds, arc, self.flip_time)
+
+    def _reference_accel(self, arc_length: float) -> np.ndarray:
+        """The planned acceleration (centripetal plus speed change) at ``arc_length`` along the path, capped."""
+        j = min(int(np.searchsorted(self.arc, arc_length)), len(self.arc) - 2)
+        ds = self.arc[j + 1] - self.arc[j]
+        along = (self.speeds[j + 1] ** 2 - self.speeds[j] ** 2) / (2.0 * ds)
+        accel = self.speeds[j] ** 2 * self.curvature[j] + along * self.tangent[j]
+        norm = float(np.linalg.norm(accel))
+        limit = 1.2 * self._accel_limit
+        return accel * (limit / norm) if norm > limit else accel
+
     def reset(self, env=None, seed: int | None = None) -> None:
         """Plan for the episode that ``env`` (an unwrapped :class:`~racebench.env.RaceEnv`) has just reset."""
         if env is None:
@@ -320,6 +341,53 @@ def minimum_time_speeds(
     return v
 
 
+def thrust_limited_speeds(
+    arc: np.ndarray,
+    tangent: np.ndarray,
+    curvature: np.ndarray,
+    max_thrust_accel: float,
+    max_speed: float | np.ndarray,
+    start_speed: float,
+    drag: float = 0.0,
+    gravity: float = 9.81,
+) -> np.ndarray:
+    """Fastest speed profile along a path whose mass-normalised thrust stays within ``max_thrust_accel``.
+
+    A multirotor's limit is its thrust vector, not an acceleration circle: the thrust must supply the path's
+    acceleration ``a_t t + v² κ``, hold up against gravity and cancel drag (``drag · v²`` along ``t``), so
+    ``|a_t t + v² κ + drag v² t + g ẑ| ≤ max_thrust_accel``. A level turn can pull ``sqrt(F² − g²)``
+    sideways, a climb less, a dive more. The part normal to the path fixes the highest speed at each
+    sample; what the thrust has left along the path bounds acceleration (forward pass) and braking
+    (backward pass)."""
+    up = np.array([0.0, 0.0, gravity])
+    g_along = tangent @ up
+    g_normal = up[None, :] - g_along[:, None] * tangent
+    # |u κ + g⊥|² ≤ F² with u = v²: the larger root of |κ|² u² + 2 (κ·g⊥) u + |g⊥|² − F² is the speed cap.
+    k2 = np.sum(curvature**2, axis=1)
+    kg = np.sum(curvature * g_normal, axis=1)
+    c = np.sum(g_normal**2, axis=1) - max_thrust_accel**2
+    disc = np.maximum(kg**2 - k2 * c, 0.0)
+    u_cap = np.where(k2 > 1e-12, (-kg + np.sqrt(disc)) / np.maximum(k2, 1e-12), np.inf)
+    v = np.minimum(np.sqrt(np.maximum(u_cap, 0.0)), max_speed)
+    v[0] = min(v[0], start_speed)
+
+    def spare(i: int, u: float) -> float:
+        """Thrust left along the path at sample ``i`` and squared speed ``u``."""
+        normal = u * curvature[i] + g_normal[i]
+        return math.sqrt(max(max_thrust_accel**2 - float(normal @ normal), 0.0))
+
+    ds = np.diff(arc)
+    for i in range(len(v) - 1):
+        u = v[i] ** 2
+        along = spare(i, u) - drag * u - g_along[i]
+        v[i + 1] = min(v[i + 1], math.sqrt(max(u + 2.0 * max(along, 0.0) * ds[i], 0.0)))
+    for i in range(len(v) - 2, -1, -1):
+        u = v[i + 1] ** 2
+        braking = spare(i + 1, u) + drag * u + g_along[i + 1]
+        v[i] = min(v[i], math.sqrt(u + 2.0 * max(braking, 0.0) * ds[i]))
+    return v
+
+
 def limit_jerk(speeds: np.ndarray, arc: np.ndarray, window: float) -> np.ndarray:
     """A speed profile never above ``speeds`` whose acceleration changes over ``window`` seconds rather
     than instantly: a moving minimum, then a moving average, both over ``window`` of travel time.
@@ -336,6 +404,32 @@ def limit_jerk(speeds: np.ndarray, arc: np.ndarray, window: float) -> np.ndarray
     csum = np.concatenate([[0.0], np.cumsum(eroded)])
     # erosion then averaging over the same window: the average of values below the profile stays below it
     return np.minimum((csum[hi] - csum[lo]) / (hi - lo), speeds)
+
+
+def limit_braking_onset(speeds: np.ndarray, arc: np.ndarray, jerk: float) -> np.ndarray:
+    """The highest speed profile below ``speeds`` whose acceleration falls from speeding up to braking no
+    faster than ``jerk`` (m/s³).
+
+    A multirotor brakes by tilting its thrust backwards: from full acceleration to full braking the thrust
+    direction turns by up to ~90°, which takes a body-rate-limited fraction of a second, so a profile that
+    switches at once overshoots every speed peak. With ``u = v²`` the along-path acceleration is ``u′/2`` and
+    ``da/dt = v u″ / 2``, so the bound is ``u″ ≥ −2 jerk / v``; taken at the path's top speed it is a constant
+    ``−c``, and the highest ``u`` below the profile with ``u″ ≥ −c`` is the lower convex hull of
+    ``u + c s²/2``, minus ``c s²/2``. It only lowers speed peaks; the switch from braking to speeding up at
+    a turn's apex is already gradual, since there the turn takes the whole thrust budget."""
+    c = 2.0 * jerk / max(float(speeds.max()), 1.0)
+    lifted = speeds**2 + 0.5 * c * arc**2
+    hull: list[int] = []  # indices of the lower convex hull, left to right (monotone chain)
+    for k in range(len(arc)):
+        while len(hull) >= 2:
+            i, j = hull[-2], hull[-1]
+            cross = (arc[j] - arc[i]) * (lifted[k] - lifted[i]) - (lifted[j] - lifted[i]) * (arc[k] - arc[i])
+            if cross > 0.0:
+                break
+            hull.pop()
+        hull.append(k)
+    envelope = np.interp(arc, arc[hull], lifted[hull]) - 0.5 * c * arc**2
+    return np.minimum(np.sqrt(np.maximum(envelope, 0.0)), speeds)
 
 
 def gate_crossings(path: np.ndarray, gates) -> list[int]:
@@ -360,16 +454,18 @@ class FastPlannerAgent:
     pulled taut between the gate centres (:func:`pull_taut`) and smoothed by descending bending energy under
     clearance floors (:func:`relax`); the first candidate (shortest first) whose spline passes every
     opening in order and stays :attr:`min_path_clearance` clear up to the finish is kept, otherwise the
-    cautious :class:`PlannerAgent` flies the episode. Speeds: the friction-circle minimum-time profile
-    (:func:`minimum_time_speeds`) under ``max_accel``, capped where the path runs close to something, with
-    acceleration changes spread over ``flip_time`` (:func:`limit_jerk`).
+    cautious :class:`PlannerAgent` flies the episode. Speeds: the minimum-time profile under the thrust
+    budget ``thrust_accel`` (:func:`thrust_limited_speeds`: gravity and drag included, so level turns pull
+    harder than climbs), capped where the path runs close to something, with each switch from speeding up
+    to braking spread at ``braking_jerk`` (:func:`limit_braking_onset`) and acceleration changes spread over
+    ``flip_time`` (:func:`limit_jerk`).
 
     Tracking: cross-track PID + velocity loop around the curvature and speed-change feedforward read
     ``anticipation`` seconds ahead, body-frame drag cancelled, altitude-first thrust while the body turns.
 
     Args:
-        max_accel: acceleration budget of the speed profile, m/s². At full thrust the airframe has
-            24.1 m/s²; 10 m/s² in any direction leaves headroom for gravity, drag and the tracking loops.
+        max_accel: acceleration budget of the friction-circle profile (:func:`minimum_time_speeds`), used
+            when ``thrust_accel`` is ``None`` (v2's profile: 10 m/s² in any direction), m/s².
         max_speed: speed cap, m/s.
         clearance: the smoothed path's clearance floor away from gates, m (drone radius 0.12 plus margin).
         wanted_clearance: the smoothing pushes the path away from obstacles closer than this, m.
@@ -385,6 +481,10 @@ class FastPlannerAgent:
             centre, m (:func:`relax`). The opening is 1 m square, so 0.5 asks for its centre; the default 0.4
             lets the line cross up to 0.1 m off it, which rounds a turn. A student imitating the expert
             inherits how close to a bar its line runs.
+        thrust_accel: mass-normalised thrust the speed profile may ask for, m/s²; ``None`` for the
+            friction circle of ``max_accel``. The airframe has 24.1; 15 leaves the tracking loops ~9.
+        braking_jerk: how fast the profile's acceleration may fall from speeding up to braking, m/s³
+            (``None``: at once). The thrust turns through up to ~90° to brake; 60 spreads that over ~0.3 s.
     """
 
     name = "planner-fast"
@@ -410,8 +510,12 @@ class FastPlannerAgent:
         max_yaw_error: float = 0.5,
         gate_clearance: float = 0.4,
         gate_floor: float = 0.32,
+        thrust_accel: float | None = 15.0,
+        braking_jerk: float | None = 60.0,
     ) -> None:
         self.max_accel = max_accel
+        self.thrust_accel = thrust_accel
+        self.braking_jerk = braking_jerk
         self.max_speed = max_speed
         self.clearance = clearance
         self.wanted_clearance = wanted_clearance
@@ -487,12 +591,34 @@ class FastPlannerAgent:
             # Where the path runs close to something, fly slower: tracking error grows with speed.
             room = scene_clearance(scene, path) - self.min_path_clearance
             cap = np.minimum(self.max_speed, self.tight_speed + self.room_speed_gain * np.maximum(room, 0.0))
-            speeds = minimum_time_speeds(arc, curvature, self.max_accel, cap, start_speed, drag)
-            self.speeds = limit_jerk(speeds, arc, self.flip_time)
+            self.speeds = self._speed_profile(arc, tangent, curvature, cap, start_speed, drag, params.gravity)
             self._index = 0
             self._integral = np.zeros(3)
+            budget = self.max_accel if self.thrust_accel is None else self.thrust_accel**2 - params.gravity**2
+            self._accel_limit = budget if self.thrust_accel is None else math.sqrt(max(budget, 0.0))
             return True
         return False
+
+    def _speed_profile(self, arc, tangent, curvature, cap, start_speed, drag, gravity) -> np.ndarray:
+        """The speed profile under ``cap``: minimum-time under the acceleration or thrust budget, then
+        smoothed where the acceleration switches."""
+        if self.thrust_accel is None:
+            speeds = minimum_time_speeds(arc, curvature, self.max_accel, cap, start_speed, drag)
+        else:
+            speeds = thrust_limited_speeds(arc, tangent, curvature, self.thrust_accel, cap, start_speed, drag, gravity)
+        if self.braking_jerk is not None:
+            speeds = limit_braking_onset(speeds, arc, self.braking_jerk)
+        return limit_jerk(speeds, arc, self.flip_time)
+
+    def _reference_accel(self, arc_length: float) -> np.ndarray:
+        """The planned acceleration (centripetal plus speed change) at ``arc_length`` along the path, capped."""
+        j = min(int(np.searchsorted(self.arc, arc_length)), len(self.arc) - 2)
+        ds = self.arc[j + 1] - self.arc[j]
+        along = (self.speeds[j + 1] ** 2 - self.speeds[j] ** 2) / (2.0 * ds)
+        accel = self.speeds[j] ** 2 * self.curvature[j] + along * self.tangent[j]
+        norm = float(np.linalg.norm(accel))
+        limit = 1.2 * self._accel_limit
+        return accel * (limit / norm) if norm > limit else accel
 
     def reset(self, env=None, seed: int | None = None) -> None:
         """Plan for the episode that ``env`` (an unwrapped :class:`~racebench.env.RaceEnv`) has just reset."""
@@ -519,13 +645,7 @@ class FastPlannerAgent:
         v_ref = max(self.speeds[i], 1.0) * t  # never stall at the start, where the profile is 0
         # Feedforward from slightly ahead: thrust direction lags the command by the attitude loop.
         ahead = self.arc[i] + self.anticipation * max(self.speeds[i], 1.0)
-        j = min(int(np.searchsorted(self.arc, ahead)), len(self.arc) - 2)
-        ds = self.arc[j + 1] - self.arc[j]
-        along = (self.speeds[j + 1] ** 2 - self.speeds[j] ** 2) / (2.0 * ds)
-        feedforward = self.speeds[j] ** 2 * self.curvature[j] + along * self.tangent[j]
-        norm = float(np.linalg.norm(feedforward))
-        if norm > 1.2 * self.max_accel:
-            feedforward *= 1.2 * self.max_accel / norm
+        feedforward = self._reference_accel(ahead)
         # Cancel the airframe's quadratic drag (body axes) so the loops only fix what the model misses.
         rot = state.rotation
         v_body = rot.T @ vel

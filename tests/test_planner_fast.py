@@ -13,10 +13,12 @@ from racebench.planner import (
     FastPlannerAgent,
     PlannerAgent,
     gate_crossings,
+    limit_braking_onset,
     limit_jerk,
     minimum_time_speeds,
     pull_taut,
     scene_clearance,
+    thrust_limited_speeds,
 )
 from racebench.rollout import run_episode
 from racebench.track import Gate
@@ -71,6 +73,75 @@ def test_drag_lowers_the_forward_budget():
     dragged = minimum_time_speeds(arc, np.zeros((len(arc), 3)), 8.0, 30.0, 0.0, drag=0.05)
     assert np.all(dragged <= free + 1e-12) and dragged[-1] < free[-1]
     assert dragged[-1] < math.sqrt(8.0 / 0.05)  # terminal speed where drag eats the whole budget
+
+
+G = 9.81
+
+
+def _thrust(arc, tangent, curvature, v, drag=0.0):
+    """Mass-normalised thrust vector that flies the profile: a_t t + v² κ + drag v² t + g ẑ."""
+    along = np.diff(v**2) / (2 * np.diff(arc))
+    u = v[:-1] ** 2
+    return (along + drag * u)[:, None] * tangent[:-1] + u[:, None] * curvature[:-1] + np.array([0.0, 0.0, G])
+
+
+def test_thrust_budget_level_straight_accelerates_at_sqrt_f2_minus_g2():
+    # Level flight: the thrust holds g up and has sqrt(F² − g²) left to push along: v = sqrt(2 a s).
+    arc = np.arange(0.0, 20.0, 0.05)
+    tangent = np.tile([1.0, 0.0, 0.0], (len(arc), 1))
+    v = thrust_limited_speeds(arc, tangent, np.zeros((len(arc), 3)), 15.0, 30.0, 0.0, gravity=G)
+    np.testing.assert_allclose(v, np.sqrt(2 * math.sqrt(15.0**2 - G**2) * arc), rtol=1e-9, atol=1e-9)
+
+
+def test_thrust_budget_vertical_climb_has_f_minus_g_and_dive_f_plus_g():
+    arc = np.arange(0.0, 10.0, 0.05)
+    up = np.tile([0.0, 0.0, 1.0], (len(arc), 1))
+    climb = thrust_limited_speeds(arc, up, np.zeros((len(arc), 3)), 15.0, 30.0, 0.0, gravity=G)
+    np.testing.assert_allclose(climb, np.sqrt(2 * (15.0 - G) * arc), rtol=1e-9, atol=1e-9)
+    # Straight down to a stop: braking may use the whole thrust less gravity, F − g, like the climb.
+    down = -up
+    stop = thrust_limited_speeds(arc, down, np.zeros((len(arc), 3)), 15.0, np.where(arc < 9.9, 30.0, 0.0), 30.0, 0.0, G)
+    braking = -np.diff(stop**2) / (2 * np.diff(arc))
+    assert braking.max() == pytest.approx(15.0 - G, rel=1e-6)
+
+
+def test_thrust_budget_level_turn_speed_and_no_sample_over_budget():
+    # A straight run into a level circle of radius 2: on it v² / R = sqrt(F² − g²); before it the profile
+    # brakes; nowhere is the thrust over budget.
+    arc = np.arange(0.0, 30.0, 0.05)
+    tangent = np.tile([1.0, 0.0, 0.0], (len(arc), 1))
+    curvature = np.zeros((len(arc), 3))
+    curvature[arc >= 15.0, 1] = 0.5
+    v = thrust_limited_speeds(arc, tangent, curvature, 15.0, 20.0, 0.0, gravity=G)
+    assert np.allclose(v[arc >= 15.0], math.sqrt(2.0 * math.sqrt(15.0**2 - G**2)))
+    assert np.linalg.norm(_thrust(arc, tangent, curvature, v), axis=1).max() <= 15.0 * (1 + 1e-6)
+    assert (np.diff(v**2) / (2 * np.diff(arc))).min() < -5.0  # it brakes hard before the turn
+
+
+def test_thrust_budget_with_drag_never_exceeds_the_budget():
+    arc = np.arange(0.0, 40.0, 0.05)
+    tangent = np.tile([1.0, 0.0, 0.0], (len(arc), 1))
+    v = thrust_limited_speeds(arc, tangent, np.zeros((len(arc), 3)), 15.0, 30.0, 0.0, drag=0.05, gravity=G)
+    assert np.linalg.norm(_thrust(arc, tangent, np.zeros((len(arc), 3)), v, 0.05), axis=1).max() <= 15.0 + 1e-6
+    assert v[-1] < math.sqrt(math.sqrt(15.0**2 - G**2) / 0.05)  # below the terminal speed
+
+
+def test_limit_braking_onset_rounds_a_speed_peak_at_the_jerk_bound():
+    # Accelerate at 8 m/s² then brake at 8 m/s²: the switch is instant; after limiting, u'' ≥ −2 J / v_max
+    # everywhere, the profile is never above the original, and away from the peak it is unchanged.
+    arc = np.arange(0.0, 20.0, 0.05)
+    speeds = np.sqrt(2 * 8.0 * np.minimum(arc, 20.0 - arc))
+    limited = limit_braking_onset(speeds, arc, jerk=60.0)
+    assert np.all(limited <= speeds + 1e-12)
+    c = 2 * 60.0 / speeds.max()
+    second = np.diff(limited**2, 2) / 0.05**2
+    assert second.min() >= -c * (1 + 1e-6)
+    assert limited.max() < speeds.max() - 0.1
+    far = np.abs(arc - 10.0) > 3.0
+    np.testing.assert_allclose(limited[far], speeds[far], rtol=1e-9)
+    # Already smooth enough (a constant-acceleration ramp has u'' = 0): unchanged.
+    ramp = np.sqrt(2 * 8.0 * arc)
+    np.testing.assert_allclose(limit_braking_onset(ramp, arc, jerk=60.0), ramp, rtol=1e-12)
 
 
 def test_limit_jerk_stays_below_the_profile_and_smooths_a_step():
