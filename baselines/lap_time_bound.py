@@ -1,10 +1,12 @@
 """Lap-time bounds along planner-fast's racing line: how much of the gap to a target is the airframe's.
 
 For each scene, the fast expert's planned path (up to the finish crossing) is timed with the minimum-time
-speed profile of a point mass (friction circle, no drag, no attitude dynamics) at two acceleration budgets:
-the planner's own (10 m/s²) and the airframe's ceiling in the horizontal plane at full thrust,
-``sqrt((T_max/m)² − g²)`` ≈ 22 m/s². The second is a lower bound on any lap flown along that line; a target
-below it would be infeasible on that line, a target above it leaves the gap to path shape and tracking.
+speed profile of a point mass (no drag, no attitude dynamics) at two budgets: the planner's own thrust
+budget (``thrust_accel``, gravity included: :func:`~racebench.planner.thrust_limited_speeds`) without its
+clearance caps and jerk limits, and the airframe's ceiling in the horizontal plane at full thrust,
+``sqrt((T_max/m)² − g²)`` ≈ 22 m/s², in any direction (friction circle). The second is a lower bound on any
+lap flown along that line, up to the braking that drag lends; a target below it would be infeasible on that
+line, a target above it leaves the gap to path shape and tracking.
 
     python baselines/lap_time_bound.py --episodes 20 > baselines/experiments/lap_time_bound.txt
 """
@@ -19,7 +21,7 @@ import numpy as np
 
 import racebench  # noqa: F401  (registers the ids)
 from racebench.evaluation import eval_seeds
-from racebench.planner import FastPlannerAgent, gate_crossings, minimum_time_speeds
+from racebench.planner import FastPlannerAgent, gate_crossings, minimum_time_speeds, thrust_limited_speeds
 
 
 def lap_time(arc: np.ndarray, speeds: np.ndarray) -> float:
@@ -33,7 +35,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=20, help="evaluation seeds per main id")
     args = parser.parse_args()
-    print("env_id, n, planned profile (s), point mass at 10 m/s^2 (s), point mass at airframe ceiling (s)")
+    print("env_id, n, planned profile (s), point mass at thrust budget (s), point mass at airframe ceiling (s)")
     for track in ("S", "Circle", "J"):
         env = gym.make(f"RaceObs-{track}-v0", obs_mode="state")
         unwrapped = env.unwrapped
@@ -46,10 +48,10 @@ def main() -> None:
             if not planner.plan(unwrapped.scene, unwrapped.drone.position, 0.0, params):
                 continue
             end = gate_crossings(planner.path, unwrapped.scene.gates)[-1] + 2
-            arc, curvature = planner.arc[:end], planner.curvature[:end]
-            bound_10 = minimum_time_speeds(arc, curvature, 10.0, 1e3, 0.0)
+            arc, curvature, tangent = planner.arc[:end], planner.curvature[:end], planner.tangent[:end]
+            budget = thrust_limited_speeds(arc, tangent, curvature, planner.thrust_accel, 1e3, 0.0, 0.0, params.gravity)
             bound_top = minimum_time_speeds(arc, curvature, ceiling, 1e3, 0.0)
-            rows.append((lap_time(arc, planner.speeds[:end]), lap_time(arc, bound_10), lap_time(arc, bound_top)))
+            rows.append((lap_time(arc, planner.speeds[:end]), lap_time(arc, budget), lap_time(arc, bound_top)))
         env.close()
         mean = np.mean(rows, axis=0)
         print(f"RaceObs-{track}-v0, {len(rows)}, {mean[0]:.2f}, {mean[1]:.2f}, {mean[2]:.2f}")
