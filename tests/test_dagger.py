@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from racebench.agents import SB3Agent
+from racebench.agents import BUILTIN_VERSIONS, SB3Agent
 from racebench.training.dagger import DaggerConfig, Dataset, distill
 
 
@@ -148,6 +148,7 @@ def test_a_tiny_distillation_run(tmp_path: Path) -> None:
     assert np.isfinite(progress["loss"]).all()
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["teacher"] == "planner-fast" and saved["eval"]["n"] == 1  # the fast expert by default
+    assert saved["teacher_version"] == BUILTIN_VERSIONS["planner-fast"]
     agent = SB3Agent(summary["checkpoint"], trust_code=True)
     assert agent.obs_mode == "vision" and not agent.privileged
     assert saved["student"] == "vision-ppo" and agent.recurrent  # the paper's GRU network by default

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from racebench.agents import load_agent
+from racebench.agents import BUILTIN_VERSIONS, load_agent
 from racebench.evaluation import EVAL_SEED_BASE
 from racebench.planner import FastPlannerAgent, PlannerAgent
 from racebench.raycast import BatchDepthRenderer
@@ -568,6 +568,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     summary: dict[str, Any] = {
         "method": "dagger",
         "teacher": config.teacher,
+        "teacher_version": BUILTIN_VERSIONS[config.teacher],  # a bumped built-in plans and flies differently
         "student": config.student,
         "config": asdict(config),
         "checkpoint": str(checkpoint),
