@@ -104,27 +104,6 @@ class PlannerAgent:
         self.path: np.ndarray | None = None
         self._fallback = GateFollower(speed=speed)
 
-    def _speed_profile(self, arc, tangent, curvature, cap, start_speed, drag, gravity) -> np.ndarray:
-        """The speed profile under ``cap``: minimum-time under the acceleration or thrust budget, then
-        smoothed where the acceleration switches."""
-        if self.thrust_accel is None:
-            speeds = minimum_time_speeds(arc, curvature, self.max_accel, cap, start_speed, drag)
-        else:
-            speeds = thrust_limited_speeds(arc, tangent, curvature, self.thrust_accel, cap, start_speed, drag, gravity)
-        if self.braking_jerk is not None:
-            speeds = limit_braking_onset(speeds, arc, self.braking_jerk)
-        return limit_jerk(speeds, arc, self.flip_time)
-
-    def _reference_accel(self, arc_length: float) -> np.ndarray:
-        """The planned acceleration (centripetal plus speed change) at ``arc_length`` along the path, capped."""
-        j = min(int(np.searchsorted(self.arc, arc_length)), len(self.arc) - 2)
-        ds = self.arc[j + 1] - self.arc[j]
-        along = (self.speeds[j + 1] ** 2 - self.speeds[j] ** 2) / (2.0 * ds)
-        accel = self.speeds[j] ** 2 * self.curvature[j] + along * self.tangent[j]
-        norm = float(np.linalg.norm(accel))
-        limit = 1.2 * self._accel_limit
-        return accel * (limit / norm) if norm > limit else accel
-
     def reset(self, env=None, seed: int | None = None) -> None:
         """Plan for the episode that ``env`` (an unwrapped :class:`~racebench.env.RaceEnv`) has just reset."""
         if env is None:
