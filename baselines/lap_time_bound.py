@@ -1,12 +1,14 @@
 """Lap-time bounds along planner-fast's racing line: how much of the gap to a target is the airframe's.
 
 For each scene, the fast expert's planned path (up to the finish crossing) is timed with the minimum-time
-speed profile of a point mass (no drag, no attitude dynamics) at two budgets: the planner's own thrust
-budget (``thrust_accel``, gravity included: :func:`~racebench.planner.thrust_limited_speeds`) without its
-clearance caps and jerk limits, and the airframe's ceiling in the horizontal plane at full thrust,
-``sqrt((T_max/m)² − g²)`` ≈ 22 m/s², in any direction (friction circle). The second is a lower bound on any
-lap flown along that line, up to the braking that drag lends; a target below it would be infeasible on that
-line, a target above it leaves the gap to path shape and tracking.
+speed profile of a point mass (no attitude dynamics; :func:`~racebench.planner.thrust_limited_speeds` on the
+spline's own curvature) at two budgets:
+
+* the planner's own thrust budget (``thrust_accel``, its drag, its 12 m/s cap): what its profile would be
+  without the clearance caps and the jerk limits;
+* the airframe's full thrust ``T_max / m`` (24.1 m/s²) in any direction, gravity included, no drag: a lower
+  bound on any lap flown along that line (drag's help when braking aside, ≤ 0.05 v² m/s²). A target below it
+  would be infeasible on that line; a target above it leaves the gap to path shape and tracking.
 
     python baselines/lap_time_bound.py --episodes 20 > baselines/experiments/lap_time_bound.txt
 """
@@ -14,14 +16,13 @@ line, a target above it leaves the gap to path shape and tracking.
 from __future__ import annotations
 
 import argparse
-import math
 
 import gymnasium as gym
 import numpy as np
 
 import racebench  # noqa: F401  (registers the ids)
 from racebench.evaluation import eval_seeds
-from racebench.planner import FastPlannerAgent, gate_crossings, minimum_time_speeds, thrust_limited_speeds
+from racebench.planner import FastPlannerAgent, gate_crossings, thrust_limited_speeds
 
 
 def lap_time(arc: np.ndarray, speeds: np.ndarray) -> float:
@@ -40,7 +41,7 @@ def main() -> None:
         env = gym.make(f"RaceObs-{track}-v0", obs_mode="state")
         unwrapped = env.unwrapped
         params = unwrapped.params
-        ceiling = math.sqrt((params.max_thrust / params.mass) ** 2 - params.gravity**2)
+        drag = params.drag_coefficients[0] / params.mass
         rows = []
         for seed in eval_seeds(args.episodes):
             env.reset(seed=seed)
@@ -48,9 +49,12 @@ def main() -> None:
             if not planner.plan(unwrapped.scene, unwrapped.drone.position, 0.0, params):
                 continue
             end = gate_crossings(planner.path, unwrapped.scene.gates)[-1] + 2
-            arc, curvature, tangent = planner.arc[:end], planner.curvature[:end], planner.tangent[:end]
-            budget = thrust_limited_speeds(arc, tangent, curvature, planner.thrust_accel, 1e3, 0.0, 0.0, params.gravity)
-            bound_top = minimum_time_speeds(arc, curvature, ceiling, 1e3, 0.0)
+            arc, curvature, tangent = planner.arc[:end], planner.profile_curvature[:end], planner.tangent[:end]
+            budget = thrust_limited_speeds(
+                arc, tangent, curvature, planner.thrust_accel, planner.max_speed, 0.0, drag, params.gravity
+            )
+            full = params.max_thrust / params.mass
+            bound_top = thrust_limited_speeds(arc, tangent, curvature, full, 1e3, 0.0, 0.0, params.gravity)
             rows.append((lap_time(arc, planner.speeds[:end]), lap_time(arc, budget), lap_time(arc, bound_top)))
         env.close()
         mean = np.mean(rows, axis=0)

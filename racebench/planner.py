@@ -341,12 +341,14 @@ def thrust_limited_speeds(
     up = np.array([0.0, 0.0, gravity])
     g_along = tangent @ up
     g_normal = up[None, :] - g_along[:, None] * tangent
-    # |u κ + g⊥|² ≤ F² with u = v²: the larger root of |κ|² u² + 2 (κ·g⊥) u + |g⊥|² − F² is the speed cap.
-    k2 = np.sum(curvature**2, axis=1)
-    kg = np.sum(curvature * g_normal, axis=1)
-    c = np.sum(g_normal**2, axis=1) - max_thrust_accel**2
-    disc = np.maximum(kg**2 - k2 * c, 0.0)
-    u_cap = np.where(k2 > 1e-12, (-kg + np.sqrt(disc)) / np.maximum(k2, 1e-12), np.inf)
+    # The speed cap: the highest u = v² that can be held (a_t = 0), |(drag u + g_t) t + u κ + g⊥|² ≤ F², i.e.
+    # the larger root of (|κ|² + drag²) u² + 2 (κ·g⊥ + drag g_t) u + g² − F² (κ ⊥ t). Below it the thrust has
+    # something left along the path both ways, so the passes never have to clip.
+    quad = np.sum(curvature**2, axis=1) + drag**2
+    half = np.sum(curvature * g_normal, axis=1) + drag * g_along
+    const = gravity**2 - max_thrust_accel**2
+    disc = np.maximum(half**2 - quad * const, 0.0)
+    u_cap = np.where(quad > 1e-12, (-half + np.sqrt(disc)) / np.maximum(quad, 1e-12), np.inf)
     v = np.minimum(np.sqrt(np.maximum(u_cap, 0.0)), max_speed)
     v[0] = min(v[0], start_speed)
 
@@ -386,16 +388,18 @@ def limit_jerk(speeds: np.ndarray, arc: np.ndarray, window: float) -> np.ndarray
 
 
 def limit_braking_onset(speeds: np.ndarray, arc: np.ndarray, jerk: float) -> np.ndarray:
-    """The highest speed profile below ``speeds`` whose acceleration falls from speeding up to braking no
-    faster than ``jerk`` (m/s³).
+    """The highest speed profile below ``speeds`` whose acceleration falls no faster than ``jerk`` (m/s³) at
+    top speed (``jerk · v / v_max`` below it: a conservative constant in ``u = v²``).
 
     A multirotor brakes by tilting its thrust backwards: from full acceleration to full braking the thrust
     direction turns by up to ~90°, which takes a body-rate-limited fraction of a second, so a profile that
     switches at once overshoots every speed peak. With ``u = v²`` the along-path acceleration is ``u′/2`` and
     ``da/dt = v u″ / 2``, so the bound is ``u″ ≥ −2 jerk / v``; taken at the path's top speed it is a constant
     ``−c``, and the highest ``u`` below the profile with ``u″ ≥ −c`` is the lower convex hull of
-    ``u + c s²/2``, minus ``c s²/2``. It only lowers speed peaks; the switch from braking to speeding up at
-    a turn's apex is already gradual, since there the turn takes the whole thrust budget."""
+    ``u + c s²/2``, minus ``c s²/2``. It lowers speed peaks (the switch from speeding up to braking) and
+    rounds any other fall in acceleration (e.g. levelling off onto a plateau); rises are left alone: the
+    switch from braking to speeding up at a turn's apex is already gradual, since there the turn takes the
+    whole thrust budget."""
     c = 2.0 * jerk / max(float(speeds.max()), 1.0)
     lifted = speeds**2 + 0.5 * c * arc**2
     hull: list[int] = []  # indices of the lower convex hull, left to right (monotone chain)
@@ -565,6 +569,7 @@ class FastPlannerAgent:
             kernel = np.ones(7) / 7.0
             smooth_curvature = np.stack([np.convolve(curvature[:, k], kernel, mode="same") for k in range(3)], 1)
             self.path, self.arc, self.tangent, self.curvature = path, arc, tangent, smooth_curvature
+            self.profile_curvature = curvature  # what the speed profile was planned on (raw, larger)
             params = params or QuadrotorParams()
             drag = params.drag_coefficients[0] / params.mass  # forward drag eats into the acceleration budget
             # Where the path runs close to something, fly slower: tracking error grows with speed.

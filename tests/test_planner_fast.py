@@ -118,12 +118,49 @@ def test_thrust_budget_level_turn_speed_and_no_sample_over_budget():
     assert (np.diff(v**2) / (2 * np.diff(arc))).min() < -5.0  # it brakes hard before the turn
 
 
-def test_thrust_budget_with_drag_never_exceeds_the_budget():
+@pytest.mark.parametrize("climb", [0.0, 0.5, -0.5])
+def test_thrust_budget_with_drag_never_exceeds_the_budget(climb):
+    # Level, climbing and diving runs into a turn of radius 5 m, with drag: the thrust stays within the
+    # budget everywhere (the speed cap keeps room for drag and gravity along the path), up to the passes'
+    # first-order discretisation.
+    arc = np.arange(0.0, 40.0, 0.02)
+    tangent = np.tile(np.array([1.0, 0.0, climb]) / math.hypot(1.0, climb), (len(arc), 1))
+    curvature = np.zeros((len(arc), 3))
+    curvature[arc >= 25.0, 1] = 0.2
+    v = thrust_limited_speeds(arc, tangent, curvature, 15.0, 30.0, 0.0, drag=0.05, gravity=G)
+    assert np.linalg.norm(_thrust(arc, tangent, curvature, v, 0.05), axis=1).max() <= 15.0 * 1.002
+
+
+def test_drag_helps_braking_and_hinders_speeding_up():
+    # Level straight to a stop: with drag the profile reaches less top speed but brakes harder near it.
     arc = np.arange(0.0, 40.0, 0.05)
     tangent = np.tile([1.0, 0.0, 0.0], (len(arc), 1))
-    v = thrust_limited_speeds(arc, tangent, np.zeros((len(arc), 3)), 15.0, 30.0, 0.0, drag=0.05, gravity=G)
-    assert np.linalg.norm(_thrust(arc, tangent, np.zeros((len(arc), 3)), v, 0.05), axis=1).max() <= 15.0 + 1e-6
-    assert v[-1] < math.sqrt(math.sqrt(15.0**2 - G**2) / 0.05)  # below the terminal speed
+    stop = np.where(arc < 39.9, 30.0, 0.0)
+    free = thrust_limited_speeds(arc, tangent, np.zeros((len(arc), 3)), 15.0, stop, 0.0, drag=0.0, gravity=G)
+    dragged = thrust_limited_speeds(arc, tangent, np.zeros((len(arc), 3)), 15.0, stop, 0.0, drag=0.05, gravity=G)
+    assert dragged.max() < free.max()
+    braking = -np.diff(dragged**2) / (2 * np.diff(arc))
+    k = int(np.argmax(dragged)) + 1  # the first segment wholly on the backward pass's braking curve
+    # Braking is sqrt(F² − g²) plus drag's 0.05 v² (the backward pass reads the state at the segment's end).
+    assert braking[k] == pytest.approx(math.sqrt(15.0**2 - G**2) + 0.05 * dragged[k + 1] ** 2, rel=1e-9)
+    assert braking[k] > math.sqrt(15.0**2 - G**2) + 5.0
+
+
+def test_v2_profile_is_kept_by_name(s_env):
+    # FastPlannerAgent(thrust_accel=None, braking_jerk=None) plans v2's friction-circle profile exactly.
+    s_env.reset(seed=0)
+    env = s_env.unwrapped
+    v2 = FastPlannerAgent(thrust_accel=None, braking_jerk=None)
+    assert v2.plan(env.scene, env.drone.position, 0.0, env.params)
+    drag = env.params.drag_coefficients[0] / env.params.mass
+    room = scene_clearance(env.scene, v2.path) - v2.min_path_clearance
+    cap = np.minimum(v2.max_speed, v2.tight_speed + v2.room_speed_gain * np.maximum(room, 0.0))
+    speeds = minimum_time_speeds(v2.arc, v2.profile_curvature, v2.max_accel, cap, 0.0, drag)
+    np.testing.assert_array_equal(v2.speeds, limit_jerk(speeds, v2.arc, v2.flip_time))
+    v3 = FastPlannerAgent()
+    assert v3.plan(env.scene, env.drone.position, 0.0, env.params)
+    np.testing.assert_array_equal(v3.path, v2.path)  # the same line, another profile
+    assert not np.array_equal(v3.speeds, v2.speeds)
 
 
 def test_limit_braking_onset_rounds_a_speed_peak_at_the_jerk_bound():
