@@ -12,6 +12,7 @@ successful laps and the crash reasons of the others.
 from __future__ import annotations
 
 import argparse
+import inspect
 import itertools
 
 import gymnasium as gym
@@ -27,12 +28,14 @@ def parse_settings(items: list[str]) -> dict[str, list[float | None]]:
     """``["max_accel=10,13", "braking_jerk=none,60"]`` → ``{"max_accel": [10.0, 13.0], "braking_jerk": [None,
     60.0]}`` (``none`` turns an optional stage off); a one-line error on bad input."""
     grid = {}
+    settings = inspect.signature(FastPlannerAgent).parameters
     for item in items:
         name, _, values = item.partition("=")
-        if not values or not hasattr(FastPlannerAgent(), name):
+        if not values or name not in settings:
             raise SystemExit(f"planner_fast_sweep: expected NAME=V1,V2,... naming a planner setting, got {item!r}")
+        optional = "None" in str(settings[name].annotation)  # only these may be turned off
         try:
-            grid[name] = [None if v.strip().lower() == "none" else float(v) for v in values.split(",")]
+            grid[name] = [None if optional and v.strip().lower() == "none" else float(v) for v in values.split(",")]
         except ValueError:
             raise SystemExit(f"planner_fast_sweep: {name}: expected comma-separated numbers, got {values!r}") from None
     return grid

@@ -466,8 +466,9 @@ class FastPlannerAgent:
             inherits how close to a bar its line runs.
         thrust_accel: mass-normalised thrust the speed profile may ask for, m/s²; ``None`` for the
             friction circle of ``max_accel``. The airframe has 24.1; 15 leaves the tracking loops ~9.
-        braking_jerk: how fast the profile's acceleration may fall from speeding up to braking, m/s³
-            (``None``: at once). The thrust turns through up to ~90° to brake; 60 spreads that over ~0.3 s.
+        braking_jerk: how fast the profile's acceleration may fall (at top speed; e.g. from speeding up to
+            braking), m/s³ (``None``: at once). The thrust turns through up to ~90° to brake; 60 spreads that
+            over ~0.3 s.
     """
 
     name = "planner-fast"
@@ -496,6 +497,9 @@ class FastPlannerAgent:
         thrust_accel: float | None = 15.0,
         braking_jerk: float | None = 60.0,
     ) -> None:
+        for name, value in (("thrust_accel", thrust_accel), ("braking_jerk", braking_jerk)):
+            if value is not None and not value > 0:
+                raise ValueError(f"FastPlannerAgent: {name} must be a positive number or None, got {value!r}")
         self.max_accel = max_accel
         self.thrust_accel = thrust_accel
         self.braking_jerk = braking_jerk
@@ -578,8 +582,12 @@ class FastPlannerAgent:
             self.speeds = self._speed_profile(arc, tangent, curvature, cap, start_speed, drag, params.gravity)
             self._index = 0
             self._integral = np.zeros(3)
-            budget = self.max_accel if self.thrust_accel is None else self.thrust_accel**2 - params.gravity**2
-            self._accel_limit = budget if self.thrust_accel is None else math.sqrt(max(budget, 0.0))
+            if self.thrust_accel is None:
+                self._accel_limit = self.max_accel
+            else:  # what the thrust budget can pull sideways in level flight
+                if self.thrust_accel <= params.gravity:
+                    raise ValueError(f"FastPlannerAgent: thrust_accel must exceed gravity, got {self.thrust_accel}")
+                self._accel_limit = math.sqrt(self.thrust_accel**2 - params.gravity**2)
             return True
         return False
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -251,3 +253,30 @@ def test_planner_fast_flies_faster_than_the_cautious_planner(s_env):
     slow_laps = [r["lap_time"] for r in slow if r["success"]]
     assert len(fast_laps) >= 4
     assert np.mean(fast_laps) < 0.75 * np.mean(slow_laps)
+
+
+@pytest.mark.parametrize("kwargs", [{"thrust_accel": 0.0}, {"thrust_accel": -3.0}, {"braking_jerk": 0.0}])
+def test_non_positive_profile_settings_are_refused(kwargs):
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        FastPlannerAgent(**kwargs)
+
+
+def test_a_thrust_budget_below_gravity_is_refused_at_planning(s_env):
+    s_env.reset(seed=0)
+    env = s_env.unwrapped
+    with pytest.raises(ValueError, match="thrust_accel must exceed gravity"):
+        FastPlannerAgent(thrust_accel=9.0).plan(env.scene, env.drone.position, 0.0, env.params)
+
+
+def test_planner_fast_sweep_settings_parse_none_only_where_a_stage_can_be_off():
+    path = Path(__file__).resolve().parents[1] / "baselines" / "planner_fast_sweep.py"
+    spec = importlib.util.spec_from_file_location("planner_fast_sweep", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    parse_settings = module.parse_settings
+
+    assert parse_settings(["braking_jerk=none,60"]) == {"braking_jerk": [None, 60.0]}
+    with pytest.raises(SystemExit, match="max_accel"):
+        parse_settings(["max_accel=none"])  # not optional: a one-line error, not a crash mid-sweep
+    with pytest.raises(SystemExit, match="naming a planner setting"):
+        parse_settings(["path=1"])  # an attribute, not a setting
