@@ -7,6 +7,8 @@ A sweep file (YAML, loaded with ``yaml.safe_load``; ``baselines/sweeps/paper-tab
     configs:                        # built-in names or YAML files (relative to the sweep file), PPO or DAgger
       - state-ppo
       - {config: vision-ppo, overrides: {n_envs: 32}}   # overrides of this config only
+      - {config: vision-distill, steps: 500000}         # this config's own step budget
+      - {config: vision-distill-ppo, after: vision-distill}   # starts from that config's final policy
     tracks: [S, J]
     seeds: [0, 1]                   # training seeds (below the evaluation seeds)
     steps: 200000                   # environment steps per run
@@ -25,8 +27,15 @@ resumable :class:`~racebench.evaluation.Evaluator` (labelled ``<config name>-see
 ``racebench table <out>/*/eval`` puts one row per config and seed). There is no second checkpoint mechanism:
 a run killed anywhere, or retried by Ray after its worker or node died, picks up from these files.
 
+``after: NAME`` chains two configs (a teacher–student campaign: the DAgger student, then its PPO fine-tuning):
+each run of this config initialises from the final policy of NAME's run on the same track and seed in this
+sweep (its ``init_from`` becomes ``<out>/NAME-<track>-seed<seed>/NAME-<track>.zip``) and starts only after that
+run has finished; if that run failed, this one is reported failed without starting. NAME must be listed
+earlier, so the local order already respects it.
+
 The local backend runs the runs one after another in this process; the Ray backend makes each run a Ray
-task reserving the CPUs (and GPUs) its config needs, so a cluster runs as many side by side as fit.
+task reserving the CPUs (and GPUs) its config needs, so a cluster runs as many side by side as fit, each
+chained run submitted once the run it starts from has finished.
 """
 
 from __future__ import annotations
@@ -68,6 +77,7 @@ class SweepRun:
     device: str
     cpus: float
     gpus: float
+    after: str | None = None  # the label of the run whose final policy this one starts from (``after:``)
 
     @property
     def label(self) -> str:
@@ -84,13 +94,26 @@ class Sweep:
     runs: list[SweepRun]
 
 
-def _load_config(entry: Any, base: Path, overrides: dict[str, Any], source: str) -> Any:
-    from racebench.training.train import BASELINES, load_config
+CONFIG_ENTRY_KEYS: tuple[str, ...] = ("config", "overrides", "steps", "after")
 
+
+def _config_entry(entry: Any, source: str) -> dict[str, Any]:
+    """A ``configs`` entry as a mapping with at least ``config`` (a bare name/file is ``{config: name}``)."""
     if isinstance(entry, str):
         entry = {"config": entry}
-    if not isinstance(entry, dict) or set(entry) - {"config", "overrides"} or "config" not in entry:
-        raise ValueError(f"{source}: each configs entry is a name/file or {{config: ..., overrides: {{...}}}}")
+    if not isinstance(entry, dict) or set(entry) - set(CONFIG_ENTRY_KEYS) or "config" not in entry:
+        raise ValueError(
+            f"{source}: each configs entry is a name/file or a mapping with keys among {list(CONFIG_ENTRY_KEYS)}"
+            " and config"
+        )
+    if "steps" in entry and not (isinstance(entry["steps"], int) and entry["steps"] >= 1):
+        raise ValueError(f"{source}: steps of {entry['config']!r} must be an integer >= 1")
+    return entry
+
+
+def _load_config(entry: dict[str, Any], base: Path, overrides: dict[str, Any], source: str) -> Any:
+    from racebench.training.train import BASELINES, load_config
+
     name = str(entry["config"])
     path = name if name in BASELINES or Path(name).is_absolute() else str(base / name)
     config = load_config(path)
@@ -156,9 +179,20 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
         raise ValueError(f"{source}: overrides must be a mapping")
     name = str(data.get("name", path.stem))
     root = Path(out or data.get("out") or Path("runs") / "sweeps" / name).resolve()  # Ray workers: absolute
-    configs = [_load_config(entry, path.parent, overrides, source) for entry in data["configs"]]
+    entries = [_config_entry(entry, source) for entry in data["configs"]]
+    configs = [_load_config(entry, path.parent, overrides, source) for entry in entries]
     runs = []
-    for config in configs:
+    for index, (entry, config) in enumerate(zip(entries, configs, strict=True)):
+        after = entry.get("after")
+        if after is not None:
+            earlier = [c.name for c in configs[:index]]
+            if after not in earlier:
+                raise ValueError(f"{source}: {config.name!r} is after {after!r}, not a config listed before it")
+            if not hasattr(config, "init_from"):
+                raise ValueError(f"{source}: {config.name!r} cannot start from another run's policy (no init_from)")
+            config = dataclasses.replace(
+                config, init_from=str(root / f"{after}-{{track}}-seed{{seed}}" / f"{after}-{{track}}.zip")
+            )
         for track in data["tracks"]:
             for seed in data["seeds"]:
                 cpus = data.get("cpus_per_run")
@@ -167,13 +201,14 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
                         config=config,
                         track=track,
                         seed=seed,
-                        steps=data["steps"],
+                        steps=entry.get("steps", data["steps"]),
                         out=root / f"{config.name}-{track}-seed{seed}",
                         eval_episodes=data.get("eval_episodes", 10),
                         checkpoint_every=data.get("checkpoint_every", 50_000),
                         device=device,
                         cpus=float(config.num_processes if cpus is None else cpus),
                         gpus=float(data.get("gpus_per_run") or 0),
+                        after=None if after is None else f"{after}-{track}-seed{seed}",
                     )  # fmt: skip
                 )
     folders = [run.out.name for run in runs]
@@ -275,8 +310,16 @@ def run_sweep(
         if on_row is not None:
             on_row(row)
 
+    def blocked(run: SweepRun) -> bool:  # the run it starts from failed: report it failed, do not start it
+        if run.after is None or not str(rows[run.after]["status"]).startswith("failed"):
+            return False
+        finish(run, _failed(run, RuntimeError(f"it starts from {run.after}, which failed")))
+        return True
+
     if backend == "local":
-        for run in sweep.runs:
+        for run in sweep.runs:  # load_sweep lists a run's `after` before it
+            if blocked(run):
+                continue
             try:
                 finish(run, run_job(run))
             except Exception as exc:  # noqa: BLE001 - one failing run must not stop the sweep
@@ -294,19 +337,31 @@ def run_sweep(
                     logger.warning("racebench sweep: %s reserves %g CPUs, more than any node has (%g)",
                                    run.label, run.cpus, largest)  # fmt: skip
             job = ray.remote(run_job)
-            refs = {
-                job.options(num_cpus=run.cpus, num_gpus=run.gpus, max_retries=options.max_retries).remote(run): run
-                for run in sweep.runs
-            }
-            pending = list(refs)
+            refs: dict[Any, SweepRun] = {}
+            pending: list[Any] = []
+
+            def submit(run: SweepRun) -> None:
+                ref = job.options(num_cpus=run.cpus, num_gpus=run.gpus, max_retries=options.max_retries).remote(run)
+                refs[ref] = run
+                pending.append(ref)
+
+            chained = [run for run in sweep.runs if run.after is not None]
+            for run in sweep.runs:
+                if run.after is None:
+                    submit(run)
             while pending:
-                ready, pending = ray.wait(pending, num_returns=1)
+                ready, rest = ray.wait(pending, num_returns=1)
+                pending[:] = rest
                 for ref in ready:
                     try:
                         finish(refs[ref], ray.get(ref))
                     except Exception as exc:  # noqa: BLE001 - a failed run (after Ray's retries) is reported
                         logger.error("racebench sweep: %s failed:\n%s", refs[ref].label, exc)  # the remote traceback
                         finish(refs[ref], _failed(refs[ref], exc))
+                    for run in [r for r in chained if r.after == refs[ref].label]:  # its followers may start now
+                        chained.remove(run)
+                        if not blocked(run):
+                            submit(run)
     else:
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     ordered = [rows[run.label] for run in sweep.runs]

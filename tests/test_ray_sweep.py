@@ -153,6 +153,82 @@ def test_a_sweep_runs_a_dagger_config_and_resumes_it_from_its_folder(tmp_path: P
     assert json.loads((run / "summary.json").read_text())["eval"]["n"] == 1
 
 
+def write_chained_sweep(tmp_path: Path) -> Path:
+    """A teacher-student chain: a tiny DAgger student (its own 128-step budget), then vision-distill-ppo
+    started from it (``after``), on S with training seed 1; no final evaluations."""
+    (tmp_path / "student.yaml").write_text(
+        "method: dagger\nname: student\nsteps_per_iteration: 64\nn_envs: 4\nepochs: 1\nbatch_size: 64\n"
+    )
+    tuned = {"n_envs": 4, "n_steps": 16, "batch_size": 64, "n_epochs": 1, "vec_env": "dummy", "num_processes": 1,
+             "critic_warmup": 0}  # fmt: skip
+    configs = [{"config": "student.yaml", "steps": 128},
+               {"config": "vision-distill-ppo", "after": "student", "overrides": tuned}]  # fmt: skip
+    sweep = {"name": "chain", "out": str(tmp_path / "out"), "tracks": ["S"], "seeds": [1], "steps": 64,
+             "eval_episodes": 0, "configs": configs}  # fmt: skip
+    path = tmp_path / "chain.yaml"
+    path.write_text(json.dumps(sweep))
+    return path
+
+
+def check_chained(out: Path) -> None:
+    """The student trained its own budget; the fine-tuning run started from the student's final policy."""
+    student = json.loads((out / "student-S-seed1" / "summary.json").read_text())
+    tuned = json.loads((out / "vision-distill-ppo-S-seed1" / "summary.json").read_text())
+    assert student["timesteps"] == 128 and tuned["timesteps"] == 64
+    assert tuned["init_from"] == str(out / "student-S-seed1" / "student-S.zip") == student["checkpoint"]
+
+
+def test_a_chained_sweep_starts_a_run_from_the_final_policy_of_the_run_it_is_after(tmp_path: Path) -> None:
+    path = write_chained_sweep(tmp_path)
+    sweep = load_sweep(path)
+    assert [run.steps for run in sweep.runs] == [128, 64]
+    assert [run.after for run in sweep.runs] == [None, "student-S-seed1"]
+    assert [row["status"] for row in run_sweep(sweep)] == ["done", "done"]
+    check_chained(tmp_path / "out")
+
+
+def test_a_chained_run_whose_predecessor_failed_is_reported_and_not_started(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import racebench.sweep as sweep_module
+
+    started = []
+
+    def job(run):  # the student fails; the follower must not be started at all
+        started.append(run.label)
+        raise RuntimeError("teacher exploded")
+
+    monkeypatch.setattr(sweep_module, "run_job", job)
+    rows = run_sweep(load_sweep(write_chained_sweep(tmp_path)))
+    assert started == ["student-S-seed1"]
+    assert [row["status"] for row in rows] == [
+        "failed: teacher exploded", "failed: it starts from student-S-seed1, which failed",
+    ]  # fmt: skip
+
+
+def test_bad_chains_are_named(tmp_path: Path) -> None:
+    path = write_chained_sweep(tmp_path)
+    data = json.loads(path.read_text())
+    for configs, message in [
+        (list(reversed(data["configs"])), "'vision-distill-ppo' is after 'student', not a config listed before it"),
+        ([data["configs"][0], {"config": "student.yaml", "after": "student", "overrides": {"name": "again"}}],
+         "'again' cannot start from another run's policy"),
+        ([{"config": "student.yaml", "steps": 0}], "steps of 'student.yaml' must be an integer >= 1"),
+        ([{"config": "student.yaml", "step": 5}], "each configs entry is a name/file or a mapping with keys among"),
+    ]:  # fmt: skip
+        path.write_text(json.dumps({**data, "configs": configs}))
+        with pytest.raises(SystemExit, match=message):
+            main(["sweep", str(path)])
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.ray
+def test_a_chained_ray_sweep_submits_a_run_after_the_run_it_starts_from(ray_cluster, tmp_path: Path) -> None:
+    rows = run_sweep(load_sweep(write_chained_sweep(tmp_path)), backend="ray", ray_options=RayOptions())
+    assert [row["status"] for row in rows] == ["done", "done"]
+    check_chained(tmp_path / "out")
+
+
 @pytest.mark.ray
 def test_a_ray_sweep_finishes_and_is_skipped_when_rerun(ray_cluster, tmp_path: Path) -> None:
     path = write_sweep(tmp_path)
@@ -223,3 +299,16 @@ def test_the_shipped_paper_sweep_loads() -> None:
     assert len(sweep.runs) == 18 and {run.config.name for run in sweep.runs} == configs
     assert {run.track for run in sweep.runs} == {"S", "Circle", "J"}
     assert all(run.steps == 100_000_000 and run.cpus == run.config.num_processes for run in sweep.runs)
+
+
+def test_the_shipped_teacher_student_sweep_chains_each_student_to_its_fine_tuning() -> None:
+    path = Path(__file__).parents[1] / "baselines" / "sweeps" / "teacher-student.yaml"
+    sweep = load_sweep(path)
+    students = [run for run in sweep.runs if run.config.name == "vision-distill"]
+    tuned = [run for run in sweep.runs if run.config.name == "vision-distill-ppo"]
+    assert len(students) == len(tuned) == 9 and sweep.runs[:9] == students  # students first: local order
+    assert {run.steps for run in students} == {500_000} and {run.steps for run in tuned} == {2_000_000}
+    for run in tuned:
+        assert run.after == f"vision-distill-{run.track}-seed{run.seed}"
+        start = run.config.init_from.format(track=run.track, seed=run.seed)
+        assert start == str(sweep.out / run.after / f"vision-distill-{run.track}.zip")
