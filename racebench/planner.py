@@ -12,6 +12,7 @@ track variant flyable and gives the leaderboard an upper reference, it is not a 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -469,6 +470,12 @@ class FastPlannerAgent:
         braking_jerk: how fast the profile's acceleration may fall (at top speed; e.g. from speeding up to
             braking), m/s³ (``None``: at once). The thrust turns through up to ~90° to brake; 60 spreads that
             over ~0.3 s.
+        replan_distance: when the drone is farther than this from the planned line (m), plan again from where
+            it is, through the gates still to pass, at most once every ``replan_interval`` s; ``None`` (the
+            built-in): never. A plan fixed at reset steers an off-line drone straight back to the line, through
+            whatever is in between; as a DAgger teacher, which labels the states a student flies into, it
+            needs to plan from them (:mod:`racebench.training.dagger`, ``teacher_replan_distance``).
+        replan_interval: least time between two replans, s (a plan costs ~0.15 s of CPU).
     """
 
     name = "planner-fast"
@@ -496,10 +503,19 @@ class FastPlannerAgent:
         gate_floor: float = 0.32,
         thrust_accel: float | None = 15.0,
         braking_jerk: float | None = 60.0,
+        replan_distance: float | None = None,
+        replan_interval: float = 0.3,
     ) -> None:
-        for name, value in (("thrust_accel", thrust_accel), ("braking_jerk", braking_jerk)):
+        for name, value in (
+            ("thrust_accel", thrust_accel), ("braking_jerk", braking_jerk), ("replan_distance", replan_distance)
+        ):  # fmt: skip
             if value is not None and not value > 0:
                 raise ValueError(f"FastPlannerAgent: {name} must be a positive number or None, got {value!r}")
+        if not replan_interval >= 0:
+            raise ValueError(f"FastPlannerAgent: replan_interval must be >= 0 s, got {replan_interval!r}")
+        self.replan_distance = replan_distance
+        self.replan_interval = replan_interval
+        self.replans = 0  # successful replans this episode
         self.max_accel = max_accel
         self.thrust_accel = thrust_accel
         self.braking_jerk = braking_jerk
@@ -617,9 +633,22 @@ class FastPlannerAgent:
         if env is None:
             raise ValueError("FastPlannerAgent is privileged: reset(env) needs the unwrapped RaceEnv")
         self.env = env
+        self.replans = 0
+        self._last_replan = -math.inf
         if not self.plan(env.scene, env.drone.position, float(np.linalg.norm(env.drone.velocity)), env.params):
             self.path = None
             self._fallback.reset(env)
+
+    def _replan(self) -> None:
+        """Plan again from the drone's state through the gates it has still to pass (keep the plan if none)."""
+        env = self.env
+        now = env.steps / env.control_freq
+        if now - self._last_replan < self.replan_interval or env.next_gate >= len(env.scene.gates):
+            return
+        self._last_replan = now
+        ahead = dataclasses.replace(env.scene, gates=env.scene.gates[env.next_gate :])
+        if self.plan(ahead, env.drone.position, float(np.linalg.norm(env.drone.velocity)), env.params):
+            self.replans += 1
 
     def act(self, obs=None) -> np.ndarray:
         """CTBR action for the env's current state."""
@@ -630,6 +659,8 @@ class FastPlannerAgent:
         pos, vel = state.position, state.velocity
         window = self.path[self._index : self._index + 20]
         self._index += int(np.argmin(np.linalg.norm(window - pos, axis=1)))
+        if self.replan_distance is not None and np.linalg.norm(self.path[self._index] - pos) > self.replan_distance:
+            self._replan()
         i = self._index
         t = self.tangent[i]
         error = self.path[i] - pos

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from racebench.agents import BUILTIN_VERSIONS, SB3Agent
-from racebench.training.dagger import DaggerConfig, Dataset, distill
+from racebench.training.dagger import DaggerConfig, Dataset, distill, load_resume_state
 
 
 def segment(values: list[float], size: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -126,9 +126,15 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(teacher_gate_clearance=0.6).validate()  # beyond the opening's centre
     with pytest.raises(ValueError, match="teacher planner-fast only"):
         DaggerConfig(teacher="planner", teacher_gate_clearance=0.5).validate()
+    with pytest.raises(ValueError, match="teacher_integral_gain must be >= 0"):
+        DaggerConfig(teacher_integral_gain=-1.0).validate()
+    with pytest.raises(ValueError, match="teacher_replan_distance must be > 0"):
+        DaggerConfig(teacher_replan_distance=0.0).validate()
+    with pytest.raises(ValueError, match="apply to teacher planner-fast only"):
+        DaggerConfig(teacher="planner", teacher_integral_gain=0.0).validate()
 
 
-def test_the_teacher_is_built_with_its_gate_clearance() -> None:
+def test_the_teacher_is_built_with_its_settings() -> None:
     from racebench.planner import FastPlannerAgent, PlannerAgent
     from racebench.training.dagger import make_teacher
 
@@ -136,6 +142,10 @@ def test_the_teacher_is_built_with_its_gate_clearance() -> None:
     assert isinstance(centred, FastPlannerAgent) and centred.gate_clearance == 0.5
     assert make_teacher(DaggerConfig()).gate_clearance == FastPlannerAgent().gate_clearance == 0.4
     assert isinstance(make_teacher(DaggerConfig(teacher="planner")), PlannerAgent)
+    default = make_teacher(DaggerConfig())
+    assert (default.integral_gain, default.replan_distance) == (FastPlannerAgent().integral_gain, None)
+    stateless = make_teacher(DaggerConfig(teacher_integral_gain=0.0, teacher_replan_distance=0.5))
+    assert (stateless.integral_gain, stateless.replan_distance) == (0.0, 0.5)
 
 
 def test_a_tiny_distillation_run(tmp_path: Path) -> None:
@@ -205,6 +215,15 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
 
     with pytest.raises(ValueError, match="epochs=1, not 2"):  # another setting: not the same run
         distill(DaggerConfig(**{**config.__dict__, "epochs": 2}), tmp_path / "parts", eval_episodes=0, resume=True)
+    # A state saved before a setting existed was run with that setting's default: it resumes under the default,
+    # and only under it.
+    state_path = tmp_path / "parts" / RESUME_DIR / "state.json"
+    state = json.loads(state_path.read_text())
+    del state["config"]["teacher_integral_gain"]
+    state_path.write_text(json.dumps(state))
+    assert load_resume_state(tmp_path / "parts", config) is not None
+    with pytest.raises(ValueError, match="teacher_integral_gain=4.0, not 0.0"):
+        load_resume_state(tmp_path / "parts", DaggerConfig(**{**config.__dict__, "teacher_integral_gain": 0.0}))
 
 
 def test_a_kill_inside_the_state_swap_resumes_from_the_state_it_left(tmp_path: Path) -> None:

@@ -280,3 +280,64 @@ def test_planner_fast_sweep_settings_parse_none_only_where_a_stage_can_be_off():
         parse_settings(["max_accel=none"])  # not optional: a one-line error, not a crash mid-sweep
     with pytest.raises(SystemExit, match="naming a planner setting"):
         parse_settings(["path=1"])  # an attribute, not a setting
+
+
+def displace(env, agent, distance: float) -> np.ndarray:
+    """Teleport the drone ``distance`` m off the agent's line (sideways, up or down) to a spot 0.45 m clear of
+    everything."""
+    i = agent._index
+    tangent = agent.tangent[i]
+    side = np.cross(tangent, [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side)
+    for direction in (side, -side, np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])):
+        spot = agent.path[i] + distance * direction
+        if scene_clearance(env.scene, spot[None])[0] >= 0.45:
+            env.sim.reset_drone(spot, 0.0, env.drone.velocity)
+            env.drone = env.sim.drone_state()
+            return spot
+    raise AssertionError("no clear spot beside the line: choose another scene")
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_replanning_expert_plans_from_where_it_is_thrown_through_the_gates_still_to_pass(s_env, seed):
+    s_env.reset(seed=seed)
+    env = s_env.unwrapped
+    agent = FastPlannerAgent(replan_distance=0.3)
+    agent.reset(env)
+    while env.next_gate < 1:  # along its line through the first gate
+        s_env.step(agent.act())
+    for _ in range(10):
+        s_env.step(agent.act())
+    assert 0 < env.next_gate < len(env.scene.gates)
+    before = agent.replans  # on its line it has no reason to (0 on these scenes; not promised on every CPU)
+    spot = displace(env, agent, 0.7)
+    agent.act()
+    assert agent.replans == before + 1
+    assert np.linalg.norm(agent.path[0] - spot) < 1e-6  # the new line starts at the drone
+    ahead = env.scene.gates[env.next_gate :]
+    assert len(gate_crossings(agent.path, ahead)) == len(ahead)  # and threads every gate still to pass, in order
+    assert scene_clearance(env.scene, agent.path[: gate_crossings(agent.path, ahead)[-1]]).min() >= 0.17
+
+    # At most once per replan_interval: thrown off again at once, it keeps the new plan for now.
+    displace(env, agent, 0.7)
+    agent.act()
+    assert agent.replans == before + 1
+
+    # The built-in (replan_distance None) keeps the plan it made at reset, wherever the drone is.
+    s_env.reset(seed=seed)
+    fixed = FastPlannerAgent()
+    fixed.reset(env)
+    while env.next_gate < 1:
+        s_env.step(fixed.act())
+    for _ in range(10):
+        s_env.step(fixed.act())
+    path = fixed.path
+    displace(env, fixed, 0.7)
+    fixed.act()
+    assert fixed.path is path and fixed.replans == 0
+
+
+@pytest.mark.parametrize("kwargs", [{"replan_distance": 0.0}, {"replan_distance": -1.0}, {"replan_interval": -0.1}])
+def test_bad_replanning_settings_are_refused(kwargs):
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        FastPlannerAgent(**kwargs)

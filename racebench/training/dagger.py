@@ -76,6 +76,12 @@ class DaggerConfig:
     # planner-fast's wanted clearance at gates (FastPlannerAgent.gate_clearance): 0.5 m crosses the opening's
     # centre, leaving a student that cuts the line more room to the bars
     teacher_gate_clearance: float = 0.4
+    # planner-fast's integral gain (FastPlannerAgent.integral_gain). Its integral sums the cross-track errors of
+    # whoever flies, the student too, so its labels depend on flight history the student cannot see; 0 makes a
+    # label a function of the current state (baselines/teacher_takeover.py measures what each does)
+    teacher_integral_gain: float = 4.0
+    # planner-fast plans again from a student that is farther than this from its line (m; None: never)
+    teacher_replan_distance: float | None = None
     student: str = "vision-ppo"  # the PPO baseline config whose network the student is (vision-ppo: the paper's)
     sequence_length: int = 32  # truncated-BPTT chunk of a recurrent student, in steps
 
@@ -130,6 +136,16 @@ class DaggerConfig:
             (
                 self.teacher == "planner-fast" or self.teacher_gate_clearance == 0.4,
                 "teacher_gate_clearance applies to teacher planner-fast only",
+            ),
+            (self.teacher_integral_gain >= 0.0, "teacher_integral_gain must be >= 0"),
+            (
+                self.teacher_replan_distance is None or self.teacher_replan_distance > 0.0,
+                "teacher_replan_distance must be > 0 m (or null: never replan)",
+            ),
+            (
+                self.teacher == "planner-fast"
+                or (self.teacher_integral_gain == 4.0 and self.teacher_replan_distance is None),
+                "teacher_integral_gain and teacher_replan_distance apply to teacher planner-fast only",
             ),
         ]
         checks.append((self.update_threads >= 1, "update_threads must be >= 1"))
@@ -332,9 +348,13 @@ def collect(
 
 
 def make_teacher(config: DaggerConfig) -> PlannerAgent | FastPlannerAgent:
-    """The config's teacher: the named privileged built-in, with ``teacher_gate_clearance`` for planner-fast."""
+    """The config's teacher: the named privileged built-in; planner-fast with the config's ``teacher_*`` settings."""
     if config.teacher == "planner-fast":
-        return FastPlannerAgent(gate_clearance=config.teacher_gate_clearance)
+        return FastPlannerAgent(
+            gate_clearance=config.teacher_gate_clearance,
+            integral_gain=config.teacher_integral_gain,
+            replan_distance=config.teacher_replan_distance,
+        )
     return load_agent(config.teacher)
 
 
@@ -488,12 +508,11 @@ def load_resume_state(out: Path, config: DaggerConfig) -> dict[str, Any] | None:
         state = json.loads((folder / "state.json").read_text())
     except json.JSONDecodeError as exc:
         raise ValueError(f"dagger: {folder / 'state.json'} is not valid JSON ({exc})") from exc
-    saved, asked = dict(state["config"]), asdict(config)
+    # A setting added after the state was saved: that run had the setting's default.
+    saved, asked = {**asdict(DaggerConfig()), **state["config"]}, asdict(config)
     for key in asked:
-        if key != "iterations" and saved.get(key) != asked[key]:
-            raise ValueError(
-                f"dagger: cannot resume {out}: it was run with {key}={saved.get(key)!r}, not {asked[key]!r}"
-            )
+        if key != "iterations" and saved[key] != asked[key]:
+            raise ValueError(f"dagger: cannot resume {out}: it was run with {key}={saved[key]!r}, not {asked[key]!r}")
     if state["iteration"] + 1 > config.iterations:
         raise ValueError(
             f"dagger: {out} has finished {state['iteration'] + 1} iterations, more than the {config.iterations} asked"
