@@ -57,6 +57,7 @@ def fly(student: SB3Agent, teacher: FastPlannerAgent, env: gym.Env, seed: int, h
         "distance": distance,
         "speed_error": speed_error,
         "replans": teacher.replans,
+        "replan_failures": teacher.replan_failures,
         "handover": handover,
         "end": race.steps,
         "crash": info.get("crash_reason"),
@@ -95,10 +96,16 @@ def main() -> None:
         share = 100 * ok / max(len(taken), 1)
         line = (f"replan {value:>4}: {ok}/{len(taken)} handed-over laps finished ({share:.0f} % "
                 f"[{100 * low:.0f}-{100 * high:.0f}])")  # fmt: skip
-        for name, part in (("<= 0.3 m", [r for r in taken if r["distance"] <= 0.3]),
-                           ("> 0.3 m", [r for r in taken if r["distance"] > 0.3])):  # fmt: skip
-            line += f"; {name} off the reset plan: {sum(r['success'] for r in part)}/{len(part)}"
-        line += f"; {np.mean([r['replans'] for r in rows]):.1f} replans/episode; {time.perf_counter() - started:.0f} s"
+        splits = {
+            "<= 0.3 m off the reset plan": [r for r in taken if r["distance"] <= 0.3],
+            "> 0.3 m off it": [r for r in taken if r["distance"] > 0.3],
+            "no plan at reset (fallback)": [r for r in taken if np.isnan(r["distance"])],
+        }
+        for name, part in splits.items():
+            line += f"; {name}: {sum(r['success'] for r in part)}/{len(part)}"
+        tries = sum(r["replan_failures"] for r in rows)
+        line += f"; {np.mean([r['replans'] for r in rows]):.1f} replans/episode ({tries} tries found no plan)"
+        line += f"; {time.perf_counter() - started:.0f} s"
         print(line, flush=True)
         if args.details:
             for i, r in enumerate(rows):

@@ -12,7 +12,6 @@ track variant flyable and gives the leaderboard an upper reference, it is not a 
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -474,7 +473,9 @@ class FastPlannerAgent:
             it is, through the gates still to pass, at most once every ``replan_interval`` s; ``None`` (the
             built-in): never. A plan fixed at reset steers an off-line drone straight back to the line, through
             whatever is in between; as a DAgger teacher, which labels the states a student flies into, it
-            needs to plan from them (:mod:`racebench.training.dagger`, ``teacher_replan_distance``).
+            needs to plan from them (:mod:`racebench.training.dagger`, ``teacher_replan_distance``). From a spot
+            closer to something than the narrowest corridor (0.21 m) no plan is found and the old one is kept
+            (counted in ``replan_failures``); a drone past a gate's approach point may be sent back to it.
         replan_interval: least time between two replans, s (a plan costs ~0.15 s of CPU).
     """
 
@@ -516,6 +517,7 @@ class FastPlannerAgent:
         self.replan_distance = replan_distance
         self.replan_interval = replan_interval
         self.replans = 0  # successful replans this episode
+        self.replan_failures = 0  # replans tried this episode that found no plan (the old one is kept)
         self.max_accel = max_accel
         self.thrust_accel = thrust_accel
         self.braking_jerk = braking_jerk
@@ -634,6 +636,7 @@ class FastPlannerAgent:
             raise ValueError("FastPlannerAgent is privileged: reset(env) needs the unwrapped RaceEnv")
         self.env = env
         self.replans = 0
+        self.replan_failures = 0
         self._last_replan = -math.inf
         if not self.plan(env.scene, env.drone.position, float(np.linalg.norm(env.drone.velocity)), env.params):
             self.path = None
@@ -646,9 +649,11 @@ class FastPlannerAgent:
         if now - self._last_replan < self.replan_interval or env.next_gate >= len(env.scene.gates):
             return
         self._last_replan = now
-        ahead = dataclasses.replace(env.scene, gates=env.scene.gates[env.next_gate :])
+        ahead = env.scene.ahead(env.next_gate)  # the frames already passed are still in the way
         if self.plan(ahead, env.drone.position, float(np.linalg.norm(env.drone.velocity)), env.params):
             self.replans += 1
+        else:
+            self.replan_failures += 1
 
     def act(self, obs=None) -> np.ndarray:
         """CTBR action for the env's current state."""

@@ -116,6 +116,18 @@ class Scene:
                 out.append((obs.position, np.asarray(obs.size, dtype=float), obs.yaw))
         return out
 
+    def ahead(self, first_gate: int) -> Scene:
+        """The scene from gate ``first_gate`` on, for planning the rest of a lap from mid-course: ``gates`` holds
+        the gates still to pass, and the bars of the gates before it stay in the way as box obstacles (same
+        geometry: :meth:`distance` is unchanged)."""
+        passed = Scene(self.track, self.gates[:first_gate], (), self.start_position, self.start_yaw,
+                       self.arena_low, self.arena_high)  # fmt: skip
+        frames = tuple(
+            Obstacle("box", centre, tuple(float(h) for h in half), yaw) for centre, half, yaw in passed.boxes()
+        )
+        return Scene(self.track, self.gates[first_gate:], frames + self.obstacles, self.start_position,
+                     self.start_yaw, self.arena_low, self.arena_high)  # fmt: skip
+
     def cylinders(self) -> list[tuple[np.ndarray, float, float]]:
         """Every cylinder obstacle as ``(centre, radius, height)``."""
         return [(o.position, float(o.size[0]), float(o.size[1])) for o in self.obstacles if o.kind == "cylinder"]

@@ -30,8 +30,9 @@ a run killed anywhere, or retried by Ray after its worker or node died, picks up
 ``after: NAME`` chains two configs (a teacher–student campaign: the DAgger student, then its PPO fine-tuning):
 each run of this config initialises from the final policy of NAME's run on the same track and seed in this
 sweep (its ``init_from`` becomes ``<out>/NAME-<track>-seed<seed>/NAME-<track>.zip``) and starts only after that
-run has finished; if that run failed, this one is reported failed without starting. NAME must be listed
-earlier, so the local order already respects it.
+run has finished; if that run failed, this one is reported failed without starting (unless it is finished or
+has checkpoints of its own, which need nothing from it). NAME is the ``name`` of a config listed earlier (after
+its overrides: the name in its run folders), so the local order already respects it.
 
 The local backend runs the runs one after another in this process; the Ray backend makes each run a Ray
 task reserving the CPUs (and GPUs) its config needs, so a cluster runs as many side by side as fit, each
@@ -106,7 +107,7 @@ def _config_entry(entry: Any, source: str) -> dict[str, Any]:
             f"{source}: each configs entry is a name/file or a mapping with keys among {list(CONFIG_ENTRY_KEYS)}"
             " and config"
         )
-    if "steps" in entry and not (isinstance(entry["steps"], int) and entry["steps"] >= 1):
+    if "steps" in entry and not (type(entry["steps"]) is int and entry["steps"] >= 1):  # not a bool
         raise ValueError(f"{source}: steps of {entry['config']!r} must be an integer >= 1")
     return entry
 
@@ -165,7 +166,7 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
         raise ValueError(f"{source}: seeds must be integers in [0, {EVAL_SEED_BASE}) (evaluation uses the rest)")
     numbers = {"steps": 1, "eval_episodes": 0, "checkpoint_every": 1}
     for key, low in numbers.items():
-        if key in data and not (isinstance(data[key], int) and data[key] >= low):
+        if key in data and not (type(data[key]) is int and data[key] >= low):  # a YAML true is no number
             raise ValueError(f"{source}: {key} must be an integer >= {low}")
     device = data.get("device", "auto")
     if device not in DEVICES:
@@ -190,8 +191,11 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
                 raise ValueError(f"{source}: {config.name!r} is after {after!r}, not a config listed before it")
             if not hasattr(config, "init_from"):
                 raise ValueError(f"{source}: {config.name!r} cannot start from another run's policy (no init_from)")
+            if "init_from" in (entry.get("overrides") or {}) or "init_from" in overrides:
+                raise ValueError(f"{source}: {config.name!r} has both after and an init_from override: keep one")
+            folder = str(root).replace("{", "{{").replace("}", "}}")  # a template: train() fills {track}, {seed}
             config = dataclasses.replace(
-                config, init_from=str(root / f"{after}-{{track}}-seed{{seed}}" / f"{after}-{{track}}.zip")
+                config, init_from=f"{folder}/{after}-{{track}}-seed{{seed}}/{after}-{{track}}.zip"
             )
         for track in data["tracks"]:
             for seed in data["seeds"]:
@@ -313,6 +317,8 @@ def run_sweep(
     def blocked(run: SweepRun) -> bool:  # the run it starts from failed: report it failed, do not start it
         if run.after is None or not str(rows[run.after]["status"]).startswith("failed"):
             return False
+        if is_finished(run) or latest_checkpoint(run.out, run.config.name)[0] is not None:
+            return False  # finished (skipped) or resumable from its own checkpoint: needs nothing from it
         finish(run, _failed(run, RuntimeError(f"it starts from {run.after}, which failed")))
         return True
 
@@ -346,6 +352,15 @@ def run_sweep(
                 pending.append(ref)
 
             chained = [run for run in sweep.runs if run.after is not None]
+
+            def release(label: str) -> None:  # the run `label` has ended: start its followers, or fail them
+                for run in [r for r in chained if r.after == label]:
+                    chained.remove(run)
+                    if blocked(run):
+                        release(run.label)  # and theirs, which will never start either
+                    else:
+                        submit(run)
+
             for run in sweep.runs:
                 if run.after is None:
                     submit(run)
@@ -358,10 +373,7 @@ def run_sweep(
                     except Exception as exc:  # noqa: BLE001 - a failed run (after Ray's retries) is reported
                         logger.error("racebench sweep: %s failed:\n%s", refs[ref].label, exc)  # the remote traceback
                         finish(refs[ref], _failed(refs[ref], exc))
-                    for run in [r for r in chained if r.after == refs[ref].label]:  # its followers may start now
-                        chained.remove(run)
-                        if not blocked(run):
-                            submit(run)
+                    release(refs[ref].label)
     else:
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     ordered = [rows[run.label] for run in sweep.runs]

@@ -298,16 +298,37 @@ def displace(env, agent, distance: float) -> np.ndarray:
     raise AssertionError("no clear spot beside the line: choose another scene")
 
 
+def fly_past_first_gate(env, agent, after: int = 10) -> None:
+    """Fly ``agent`` through the first gate and ``after`` steps on (failing, not hanging, if the lap ends)."""
+    race = env.unwrapped
+    for _ in range(race.max_steps):
+        if race.next_gate >= 1:
+            break
+        _, _, terminated, truncated, _ = env.step(agent.act())
+        assert not (terminated or truncated), "the expert did not reach its first gate"
+    for _ in range(after):
+        _, _, terminated, truncated, _ = env.step(agent.act())
+        assert not (terminated or truncated)
+
+
+def test_the_scene_ahead_keeps_the_passed_frames_as_obstacles(s_env):
+    s_env.reset(seed=4)
+    scene = s_env.unwrapped.scene
+    points = np.random.default_rng(0).uniform(scene.arena_low, scene.arena_high, size=(2000, 3))
+    for first in range(len(scene.gates) + 1):
+        ahead = scene.ahead(first)
+        assert ahead.gates == scene.gates[first:]
+        assert len(ahead.obstacles) == len(scene.obstacles) + 4 * first  # four bars a frame
+        np.testing.assert_allclose(ahead.distance(points), scene.distance(points), atol=1e-9)
+
+
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_a_replanning_expert_plans_from_where_it_is_thrown_through_the_gates_still_to_pass(s_env, seed):
     s_env.reset(seed=seed)
     env = s_env.unwrapped
     agent = FastPlannerAgent(replan_distance=0.3)
     agent.reset(env)
-    while env.next_gate < 1:  # along its line through the first gate
-        s_env.step(agent.act())
-    for _ in range(10):
-        s_env.step(agent.act())
+    fly_past_first_gate(s_env, agent)
     assert 0 < env.next_gate < len(env.scene.gates)
     before = agent.replans  # on its line it has no reason to (0 on these scenes; not promised on every CPU)
     spot = displace(env, agent, 0.7)
@@ -327,10 +348,7 @@ def test_a_replanning_expert_plans_from_where_it_is_thrown_through_the_gates_sti
     s_env.reset(seed=seed)
     fixed = FastPlannerAgent()
     fixed.reset(env)
-    while env.next_gate < 1:
-        s_env.step(fixed.act())
-    for _ in range(10):
-        s_env.step(fixed.act())
+    fly_past_first_gate(s_env, fixed)
     path = fixed.path
     displace(env, fixed, 0.7)
     fixed.act()

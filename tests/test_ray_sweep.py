@@ -215,11 +215,38 @@ def test_bad_chains_are_named(tmp_path: Path) -> None:
          "'again' cannot start from another run's policy"),
         ([{"config": "student.yaml", "steps": 0}], "steps of 'student.yaml' must be an integer >= 1"),
         ([{"config": "student.yaml", "step": 5}], "each configs entry is a name/file or a mapping with keys among"),
+        ([{"config": "student.yaml", "steps": True}], "steps of 'student.yaml' must be an integer >= 1"),
+        ([data["configs"][0], {**data["configs"][1], "overrides": {"init_from": "x.zip"}}],
+         "'vision-distill-ppo' has both after and an init_from override"),
     ]:  # fmt: skip
         path.write_text(json.dumps({**data, "configs": configs}))
         with pytest.raises(SystemExit, match=message):
             main(["sweep", str(path)])
     assert not (tmp_path / "out").exists()
+
+
+def write_failing_chain(tmp_path: Path) -> Path:
+    """Three tiny state configs a -> b -> c (each after the previous); a fails when it starts (no init_from file)."""
+    (tmp_path / "tiny.yaml").write_text(TINY)
+    configs = [
+        {"config": "tiny.yaml", "overrides": {"name": "a", "init_from": str(tmp_path / "missing.zip")}},
+        {"config": "tiny.yaml", "overrides": {"name": "b"}, "after": "a"},
+        {"config": "tiny.yaml", "overrides": {"name": "c"}, "after": "b"},
+    ]
+    sweep = {"name": "abc", "out": str(tmp_path / "out"), "configs": configs, "tracks": ["S"], "seeds": [0],
+             "steps": 128, "eval_episodes": 0}  # fmt: skip
+    path = tmp_path / "abc.yaml"
+    path.write_text(json.dumps(sweep))
+    return path
+
+
+FAILED_CHAIN = ["failed: it starts from a-S-seed0, which failed", "failed: it starts from b-S-seed0, which failed"]
+
+
+def test_a_failed_run_fails_its_whole_chain_without_starting_it(tmp_path: Path) -> None:
+    rows = run_sweep(load_sweep(write_failing_chain(tmp_path)))
+    assert "is not a file" in rows[0]["status"] and [r["status"] for r in rows[1:]] == FAILED_CHAIN
+    assert not (tmp_path / "out" / "b-S-seed0").exists() and not (tmp_path / "out" / "c-S-seed0").exists()
 
 
 @pytest.mark.ray
@@ -312,3 +339,9 @@ def test_the_shipped_teacher_student_sweep_chains_each_student_to_its_fine_tunin
         assert run.after == f"vision-distill-{run.track}-seed{run.seed}"
         start = run.config.init_from.format(track=run.track, seed=run.seed)
         assert start == str(sweep.out / run.after / f"vision-distill-{run.track}.zip")
+
+
+@pytest.mark.ray
+def test_a_failed_run_fails_its_whole_chain_on_ray(ray_cluster, tmp_path: Path) -> None:
+    rows = run_sweep(load_sweep(write_failing_chain(tmp_path)), backend="ray", ray_options=RayOptions())
+    assert "is not a file" in rows[0]["status"] and [r["status"] for r in rows[1:]] == FAILED_CHAIN
