@@ -144,3 +144,24 @@ def test_gate_crossings_finds_where_a_policy_crosses_each_gate(tmp_path, monkeyp
     monkeypatch.setattr(sys, "argv", ["gate_crossings.py", str(tmp_path)])
     with pytest.raises(SystemExit, match="no trajectories"):
         script.main()
+
+
+def test_paired_outcomes_counts_the_discordant_pairs_and_tests_them_exactly(tmp_path, monkeypatch, capsys) -> None:
+    spec = importlib.util.spec_from_file_location("paired_outcomes", ROOT / "baselines" / "paired_outcomes.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    # Seeds 0-9 on one id: A finishes 0-5, B finishes 2-9; so 2 only by A (0, 1), 4 only by B (6-9).
+    for name, wins in (("a", range(0, 6)), ("b", range(2, 10))):
+        (tmp_path / name).mkdir()
+        rows = [{"env_id": "RaceObs-S-v0", "seed": s, "success": s in wins, "lap_time": 4.0 if s in wins else None,
+                 "crash_reason": None if s in wins else "obstacle:3"} for s in range(10)]  # fmt: skip
+        pd.DataFrame(rows).to_csv(tmp_path / name / "episodes.csv", index=False)
+    monkeypatch.setattr("sys.argv", ["paired_outcomes", str(tmp_path / "a"), str(tmp_path / "b")])
+    module.main()
+    out = capsys.readouterr().out
+    assert "6/10 (60 % [31-83])" in out and "8/10 (80 % [49-94])" in out  # Wilson intervals
+    assert "failures {'obstacle': 4}" in out
+    assert "2 finished only by the first, 4 only by the second; exact McNemar p = 0.69" in out  # binomtest(4, 6)
+    monkeypatch.setattr("sys.argv", ["paired_outcomes", str(tmp_path / "a"), str(tmp_path / "missing")])
+    with pytest.raises(SystemExit, match="missing/episodes.csv does not exist"):
+        module.main()

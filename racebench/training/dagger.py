@@ -543,6 +543,9 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     ]
     envs = [m.unwrapped for m in made]
     teachers = [make_teacher(config) for _ in envs]
+    # The student's initial weights come out of LAPACK (orthogonal init), whose last bits depend on the thread
+    # count: fix it here, not wherever the caller left it, so a run and its resumption build the same student.
+    torch.set_num_threads(config.update_threads)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     policy_model = make_student(made[0], config.seed, config.student)
