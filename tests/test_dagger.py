@@ -132,6 +132,10 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(teacher_replan_distance=0.0).validate()
     with pytest.raises(ValueError, match="apply to teacher planner-fast only"):
         DaggerConfig(teacher="planner", teacher_integral_gain=0.0).validate()
+    with pytest.raises(ValueError, match="teacher_wanted_clearance must be in"):
+        DaggerConfig(teacher_wanted_clearance=0.2).validate()  # below the planner's own clearance floor
+    with pytest.raises(ValueError, match="apply to teacher planner-fast only"):
+        DaggerConfig(teacher="planner", teacher_wanted_clearance=0.6).validate()
 
 
 def test_the_teacher_is_built_with_its_settings() -> None:
@@ -146,6 +150,8 @@ def test_the_teacher_is_built_with_its_settings() -> None:
     assert (default.integral_gain, default.replan_distance) == (FastPlannerAgent().integral_gain, None)
     stateless = make_teacher(DaggerConfig(teacher_integral_gain=0.0, teacher_replan_distance=0.5))
     assert (stateless.integral_gain, stateless.replan_distance) == (0.0, 0.5)
+    assert default.wanted_clearance == FastPlannerAgent().wanted_clearance == 0.45
+    assert make_teacher(DaggerConfig(teacher_wanted_clearance=0.6)).wanted_clearance == 0.6
 
 
 def test_a_tiny_distillation_run(tmp_path: Path) -> None:

@@ -76,6 +76,9 @@ class DaggerConfig:
     # planner-fast's wanted clearance at gates (FastPlannerAgent.gate_clearance): 0.5 m crosses the opening's
     # centre, leaving a student that cuts the line more room to the bars
     teacher_gate_clearance: float = 0.4
+    # planner-fast's wanted clearance from obstacles (FastPlannerAgent.wanted_clearance): a wider berth than the
+    # default 0.45 m leaves a student that strays off the line more room before it strikes something
+    teacher_wanted_clearance: float = 0.45
     # planner-fast's integral gain (FastPlannerAgent.integral_gain). Its integral sums the cross-track errors of
     # whoever flies, the student too, so its labels depend on flight history the student cannot see; 0 makes a
     # label a function of the current state (baselines/teacher_takeover.py measures what each does)
@@ -137,6 +140,10 @@ class DaggerConfig:
                 self.teacher == "planner-fast" or self.teacher_gate_clearance == 0.4,
                 "teacher_gate_clearance applies to teacher planner-fast only",
             ),
+            (
+                0.3 <= self.teacher_wanted_clearance <= 1.0,
+                "teacher_wanted_clearance must be in [0.3, 1.0] m (the planner's clearance floor is 0.3)",
+            ),
             (self.teacher_integral_gain >= 0.0, "teacher_integral_gain must be >= 0"),
             (
                 self.teacher_replan_distance is None or self.teacher_replan_distance > 0.0,
@@ -144,8 +151,13 @@ class DaggerConfig:
             ),
             (
                 self.teacher == "planner-fast"
-                or (self.teacher_integral_gain == 4.0 and self.teacher_replan_distance is None),
-                "teacher_integral_gain and teacher_replan_distance apply to teacher planner-fast only",
+                or (
+                    self.teacher_integral_gain == 4.0
+                    and self.teacher_replan_distance is None
+                    and self.teacher_wanted_clearance == 0.45
+                ),
+                "teacher_integral_gain, teacher_replan_distance and teacher_wanted_clearance apply to teacher "
+                "planner-fast only",
             ),
         ]
         checks.append((self.update_threads >= 1, "update_threads must be >= 1"))
@@ -352,6 +364,7 @@ def make_teacher(config: DaggerConfig) -> PlannerAgent | FastPlannerAgent:
     if config.teacher == "planner-fast":
         return FastPlannerAgent(
             gate_clearance=config.teacher_gate_clearance,
+            wanted_clearance=config.teacher_wanted_clearance,
             integral_gain=config.teacher_integral_gain,
             replan_distance=config.teacher_replan_distance,
         )
