@@ -132,6 +132,8 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(teacher_replan_distance=0.0).validate()
     with pytest.raises(ValueError, match="apply to teacher planner-fast only"):
         DaggerConfig(teacher="planner", teacher_integral_gain=0.0).validate()
+    with pytest.raises(ValueError, match="gate_shift_z must be >= 0"):
+        DaggerConfig(gate_shift_z=-0.1).validate()
     with pytest.raises(ValueError, match="teacher_wanted_clearance must be in"):
         DaggerConfig(teacher_wanted_clearance=0.2).validate()  # below the planner's own clearance floor
     with pytest.raises(ValueError, match="apply to teacher planner-fast only"):
@@ -152,6 +154,31 @@ def test_the_teacher_is_built_with_its_settings() -> None:
     assert (stateless.integral_gain, stateless.replan_distance) == (0.0, 0.5)
     assert default.wanted_clearance == FastPlannerAgent().wanted_clearance == 0.45
     assert make_teacher(DaggerConfig(teacher_wanted_clearance=0.6)).wanted_clearance == 0.6
+
+
+def test_training_scenes_take_the_configs_gate_shifts() -> None:
+    from racebench.training.dagger import make_training_envs
+
+    paper = make_training_envs(DaggerConfig(n_envs=2, gate_shift=1.0, gate_shift_z=0.3))
+    default = make_training_envs(DaggerConfig(n_envs=1))
+    try:
+        assert len(paper) == 2
+        generator = paper[0].unwrapped.generator
+        assert (generator.gate_shift, generator.gate_shift_z) == (1.0, 0.3)  # the paper's ±1 m x/y, ±0.3 m z
+        assert (default[0].unwrapped.generator.gate_shift, default[0].unwrapped.generator.gate_shift_z) == (0.3, 0.3)
+        assert paper[0].unwrapped.spec.id == "RaceObs-S-v0" and paper[0].unwrapped.obs_mode == "vision"
+        shifts = []
+        for seed in range(20):  # every gate moves within its box, and some use most of the x/y range
+            paper[0].reset(seed=seed)
+            scene, base = paper[0].unwrapped.scene, paper[0].unwrapped.track
+            offsets = np.array([g.center for g in scene.gates]) - np.array([g.center for g in base.gates])
+            shifts.append(offsets)
+        shifts = np.abs(np.concatenate(shifts))
+        assert shifts[:, :2].max() <= 1.0 + 1e-9 and shifts[:, 2].max() <= 0.3 + 1e-9
+        assert shifts[:, :2].max() > 0.6
+    finally:
+        for env in paper + default:
+            env.close()
 
 
 def test_a_tiny_distillation_run(tmp_path: Path) -> None:

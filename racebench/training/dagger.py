@@ -70,6 +70,8 @@ class DaggerConfig:
     learning_rate: float = 3e-4
     max_samples: int = 250_000  # aggregate capacity; the oldest samples are overwritten beyond it
     gate_shift: float = 0.3  # training scenes: gates shifted ±m, as in RL training (evaluation: none)
+    # their vertical shift, ±m (None: gate_shift; the paper trains with ±1 m on x/y and ±0.3 m on z)
+    gate_shift_z: float | None = None
     seed: int = 0
     update_threads: int = 2
     teacher: str = "planner-fast"  # a privileged built-in: "planner-fast" (the fast expert) or "planner"
@@ -135,6 +137,8 @@ class DaggerConfig:
             (0 <= self.seed < EVAL_SEED_BASE, f"seed must be in [0, {EVAL_SEED_BASE})"),
             (self.teacher in TEACHERS, f"teacher must be one of {TEACHERS}, got {self.teacher!r}"),
             (self.sequence_length >= 1, "sequence_length must be >= 1"),
+            (self.gate_shift >= 0.0, "gate_shift must be >= 0 m"),
+            (self.gate_shift_z is None or self.gate_shift_z >= 0.0, "gate_shift_z must be >= 0 m (or null)"),
             (0.0 < self.teacher_gate_clearance <= 0.5, "teacher_gate_clearance must be in (0, 0.5] m"),
             (
                 self.teacher == "planner-fast" or self.teacher_gate_clearance == 0.4,
@@ -359,6 +363,14 @@ def collect(
     }
 
 
+def make_training_envs(config: DaggerConfig) -> list[gym.Env]:
+    """The ``n_envs`` training envs: the config's id (default ``RaceObs-<track>-v0``) with ray-cast depth and the
+    config's gate shifts (scene seeds are set per episode by the collector)."""
+    env_id = config.env_id or f"RaceObs-{config.track}-v0"
+    shifts = {"gate_shift": config.gate_shift, "gate_shift_z": config.gate_shift_z}
+    return [gym.make(env_id, obs_mode="vision", renderer="raycast", **shifts) for _ in range(config.n_envs)]
+
+
 def make_teacher(config: DaggerConfig) -> PlannerAgent | FastPlannerAgent:
     """The config's teacher: the named privileged built-in; planner-fast with the config's ``teacher_*`` settings."""
     if config.teacher == "planner-fast":
@@ -550,10 +562,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     if resume and saved is None:
         raise ValueError(f"dagger: nothing to resume in {out} (no {RESUME_DIR}/state.json): run it without resume")
     env_id = config.env_id or f"RaceObs-{config.track}-v0"
-    made = [
-        gym.make(env_id, obs_mode="vision", renderer="raycast", gate_shift=config.gate_shift)
-        for _ in range(config.n_envs)
-    ]
+    made = make_training_envs(config)
     envs = [m.unwrapped for m in made]
     teachers = [make_teacher(config) for _ in envs]
     # The student's initial weights come out of LAPACK (orthogonal init), whose last bits depend on the thread
