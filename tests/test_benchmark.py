@@ -16,7 +16,7 @@ def test_bench_quick_writes_every_measurement(tmp_path, capsys) -> None:
     rows = list(csv.DictReader(out.open()))
     values = {row["name"]: float(row["value"]) for row in rows}
     assert {row["section"] for row in rows} == {"depth", "steps", "cpu", "parts", "memory", "run"}
-    assert values["wall time"] < 15, "bench --quick must stay a quick smoke test"
+    assert values["wall time"] > 0
     for name in (
         "pybullet getCameraImage (TinyRenderer)",
         "raycast, one camera per call",
@@ -35,3 +35,15 @@ def test_bench_quick_writes_every_measurement(tmp_path, capsys) -> None:
     assert values["ratio raycast (per call) / pybullet"] > 2
     assert values["agreement: mean |d inverse depth|"] <= 0.01
     assert values["agreement: pixels within 2 %"] >= 98
+
+
+def test_bench_quick_stays_a_smoke_test() -> None:
+    """--quick stays quick by its sizes (a wall-clock bound would fail on a busy machine: benchmarks measure,
+    tests check): no evaluation or training, and every measurement a few hundred steps at most."""
+    from racebench.benchmark import BenchSettings
+
+    quick, full = BenchSettings.quick(), BenchSettings()
+    assert not quick.evaluation_and_training and quick.train_small
+    assert quick.scenes * quick.poses_per_scene <= 50 and quick.single_steps <= 100
+    assert quick.vector_envs * quick.vector_steps <= 100 and quick.eval_episodes <= 4
+    assert quick.single_steps * 10 <= full.single_steps  # a tenth of a real run's work or less
