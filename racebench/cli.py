@@ -159,7 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_curves.add_argument(
         "--success",
         action="store_true",
-        help="training success vs environment steps and vs wall-clock instead (PPO and DAgger runs alike)",
+        help="training success vs environment steps and vs wall-clock instead (PPO and DAgger runs alike; "
+        "runs of one config name, e.g. its training seeds, as a mean with a min-max band)",
     )
     p_curves.add_argument(
         "--window-steps",

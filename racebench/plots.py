@@ -314,16 +314,38 @@ def _load_runs(runs: list[str | Path]) -> list[tuple[str, pd.DataFrame]]:
     return loaded
 
 
+def smoothed_success(progress: pd.DataFrame, window_steps: int = 50_000) -> pd.DataFrame:
+    """A run's training success in % (``timesteps``, ``wall_s``, ``success``), a rolling mean over
+    ``window_steps`` environment steps' worth of its rows (PPO logs a row per update, DAgger per iteration of
+    25 k steps, so runs that log at different rates are smoothed alike)."""
+    rows = progress.dropna(subset=["success_rate"])
+    spacing = float(np.median(np.diff(rows["timesteps"]))) if len(rows) > 1 else float(window_steps)
+    window = max(1, round(window_steps / max(spacing, 1.0)))
+    success = 100 * rows["success_rate"].rolling(window=window, min_periods=1).mean()
+    return pd.DataFrame({"timesteps": rows["timesteps"], "wall_s": rows["wall_s"], "success": success})
+
+
+def seed_band(curves: list[pd.DataFrame], x: str, points: int = 200) -> pd.DataFrame:
+    """Mean, min and max over several seeds' curves (:func:`smoothed_success`) against ``x`` (``timesteps`` or
+    ``wall_s``), each interpolated linearly onto a common grid from the latest first point to the earliest last
+    point of the seeds, so every grid point is inside every seed's run (nothing is extrapolated)."""
+    start = max(float(c[x].iloc[0]) for c in curves)
+    stop = min(float(c[x].iloc[-1]) for c in curves)
+    grid = np.linspace(start, stop, points) if stop > start else np.array([stop])
+    values = np.stack([np.interp(grid, c[x].to_numpy(float), c["success"].to_numpy(float)) for c in curves])
+    return pd.DataFrame({x: grid, "mean": values.mean(0), "min": values.min(0), "max": values.max(0)})
+
+
 def plot_success_curves(
     runs: list[str | Path], path: str | Path, window_steps: int = 50_000, dpi: int = DEFAULT_DPI
 ) -> Path:
-    """Training success against environment steps (left) and against wall-clock time (right), one line per run.
+    """Training success against environment steps (left) and against wall-clock time (right), one line per run
+    or, where several runs share a config name (training seeds of one config), their mean with a min–max band.
 
     For comparing methods by cost: a PPO run's success is its training episodes' (from the track start, at
     the curriculum level of the moment: its promotions are marked), a DAgger run's the student's on the
-    training scenes. Each run is smoothed by a rolling mean over ``window_steps`` environment steps' worth of
-    its rows (PPO logs a row per update, DAgger per iteration of 25 k steps), so runs that log at different
-    rates are smoothed alike. Every run needs a ``wall_s`` column (``racebench train`` writes one).
+    training scenes. Each run is smoothed by :func:`smoothed_success`; seeds are combined by :func:`seed_band`
+    (up to the shortest seed's end). Every run needs a ``wall_s`` column (``racebench train`` writes one).
     """
     loaded = _load_runs(runs)
     for label, progress in loaded:
@@ -331,21 +353,32 @@ def plot_success_curves(
             raise ValueError(f"{label}: progress.csv has no wall_s column (wall-clock time is needed)")
         if progress["success_rate"].isna().all():
             raise ValueError(f"{label}: progress.csv has no success rate (does the env report is_success?)")
-    fig, axes = plt.subplots(1, 2, figsize=(9.6, 3.6), sharey=True)
+    groups: dict[str, list[pd.DataFrame]] = {}
     for label, progress in loaded:
-        rows = progress.dropna(subset=["success_rate"])
-        spacing = float(np.median(np.diff(rows["timesteps"]))) if len(rows) > 1 else float(window_steps)
-        window = max(1, round(window_steps / max(spacing, 1.0)))
-        success = 100 * rows["success_rate"].rolling(window=window, min_periods=1).mean()
-        marker = "o" if len(rows) == 1 else None  # a single row is a point, not a line
-        (line,) = axes[0].plot(rows["timesteps"] / 1e6, success, label=label, marker=marker)
-        axes[1].plot(rows["wall_s"] / 60, success, color=line.get_color(), marker=marker)
-        promoted = progress["level"].diff() > 0
-        for ax, x in ((axes[0], progress["timesteps"] / 1e6), (axes[1], progress["wall_s"] / 60)):
-            for at, level in zip(x[promoted], progress["level"][promoted], strict=True):
-                ax.axvline(at, color=line.get_color(), linestyle=":", linewidth=1)
-                ax.annotate(f"L{level:.0f}", (at, 100), xytext=(2, -10), textcoords="offset points",
-                            fontsize=7, color=line.get_color())  # fmt: skip
+        groups.setdefault(label, []).append(progress)
+    fig, axes = plt.subplots(1, 2, figsize=(9.6, 3.6), sharey=True)
+    for label, progresses in groups.items():
+        curves = [smoothed_success(progress, window_steps) for progress in progresses]
+        if len(curves) == 1:
+            curve = curves[0]
+            marker = "o" if len(curve) == 1 else None  # a single row is a point, not a line
+            (line,) = axes[0].plot(curve["timesteps"] / 1e6, curve["success"], label=label, marker=marker)
+            axes[1].plot(curve["wall_s"] / 60, curve["success"], color=line.get_color(), marker=marker)
+        else:
+            color = None
+            for ax, x, scale in ((axes[0], "timesteps", 1e6), (axes[1], "wall_s", 60)):
+                band = seed_band(curves, x)
+                name = f"{label} ({len(curves)} seeds: mean, min–max)"
+                (line,) = ax.plot(band[x] / scale, band["mean"], color=color, label=name if color is None else None)
+                color = line.get_color()
+                ax.fill_between(band[x] / scale, band["min"], band["max"], color=color, alpha=0.2, linewidth=0)
+        for progress in progresses:
+            promoted = progress["level"].diff() > 0
+            for ax, x in ((axes[0], progress["timesteps"] / 1e6), (axes[1], progress["wall_s"] / 60)):
+                for at, level in zip(x[promoted], progress["level"][promoted], strict=True):
+                    ax.axvline(at, color=line.get_color(), linestyle=":", linewidth=1)
+                    ax.annotate(f"L{level:.0f}", (at, 100), xytext=(2, -10), textcoords="offset points",
+                                fontsize=7, color=line.get_color())  # fmt: skip
     axes[0].set_xlabel("environment steps [millions]")
     axes[1].set_xlabel("wall-clock [min]")
     axes[0].set_ylabel("training success [%]")

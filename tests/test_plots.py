@@ -140,3 +140,26 @@ def test_success_curves_take_ppo_and_dagger_runs_alike(tmp_path: Path) -> None:
         cli.main(["-q", "curves", "--success", str(dagger), "--out", str(tmp_path / "s.png")])
     with pytest.raises(SystemExit, match="--window-steps must be >= 1"):
         cli.main(["-q", "curves", "--success", str(dagger), "--window-steps", "0"])
+
+
+def test_seeds_of_one_config_are_drawn_as_a_mean_with_a_band(tmp_path: Path) -> None:
+    # Two seeds whose success climbs linearly, one 20 points above the other and lasting longer: on the common
+    # grid the mean is midway, the band spans exactly the two, and the grid stops at the shorter run's end.
+    low = pd.DataFrame({"timesteps": [0.0, 100.0], "wall_s": [0.0, 10.0], "success": [0.0, 50.0]})
+    high = pd.DataFrame({"timesteps": [0.0, 200.0], "wall_s": [0.0, 40.0], "success": [20.0, 120.0]})
+    band = plots.seed_band([low, high], "timesteps", points=11)
+    assert band["timesteps"].iloc[-1] == 100.0  # never extrapolated past a seed's last point
+    np.testing.assert_allclose(band["min"], np.linspace(0, 50, 11))
+    np.testing.assert_allclose(band["max"], np.linspace(20, 70, 11))
+    np.testing.assert_allclose(band["mean"], np.linspace(10, 60, 11))
+    assert plots.seed_band([low, high], "wall_s")["wall_s"].max() == 10.0
+    for seed in (0, 1):
+        run = tmp_path / f"distill-seed{seed}"
+        run.mkdir()
+        (run / "summary.json").write_text('{"method": "dagger", "config": {"name": "my-distill"}}')
+        pd.DataFrame(
+            {"iteration": [0, 1, 2], "success_rate": [1.0, 0.2 + 0.2 * seed, 0.6], "env_steps": [25e3, 50e3, 75e3],
+             "samples": [25e3, 50e3, 75e3], "wall_s": [60 + seed, 120, 180]}
+        ).to_csv(run / "progress.csv", index=False)  # fmt: skip
+    svg = plots.plot_success_curves(sorted(tmp_path.glob("distill-seed*")), tmp_path / "seeds.svg").read_text()
+    assert "my-distill (2 seeds: mean, min–max)" in svg
