@@ -140,6 +140,54 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(teacher="planner", teacher_wanted_clearance=0.6).validate()
 
 
+def test_fit_samples_caps_each_fit_and_numbers_load_from_yaml(tmp_path: Path) -> None:
+    """fit_samples cuts a fit's passes at that many samples (a recurrent student: that many // length chunks),
+    counted in optimizer steps; without it every pass is whole. YAML may write it as 1e5 or null."""
+    import gymnasium as gym
+
+    from racebench.training.dagger import fit, make_student
+
+    class CountingOptimizer:
+        def __init__(self) -> None:
+            self.steps = 0
+
+        def zero_grad(self) -> None:
+            pass
+
+        def step(self) -> None:
+            self.steps += 1
+
+    env = gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast")
+    rng = np.random.default_rng(0)
+    data = Dataset(capacity=200, depth_size=64)
+    for n in (40, 40, 40):  # 15 chunks of 8 steps
+        data.add_segment(rng.normal(size=(n, 17)).astype(np.float32), rng.random((n, 1, 64, 64), np.float32),
+                         rng.normal(size=(n, 4)).astype(np.float32))  # fmt: skip
+    # (student, fit_samples, optimizer steps): a recurrent minibatch is 16 // 8 = 2 chunks of 8, so a whole pass
+    # is 8 steps; a feed-forward one is 16 samples, so a whole pass over 120 is 7 steps (the remainder dropped).
+    cases = [("vision-ppo", None, 3 * 8), ("vision-ppo", 80, 5), ("vision-ppo", 200, 8 + 5),
+             ("vision-no-gru", None, 3 * 7), ("vision-no-gru", 100, 6), ("vision-no-gru", 250, 7 + 7)]  # fmt: skip
+    for student, cap, steps in cases:
+        policy = make_student(env, seed=0, student=student).policy
+        config = DaggerConfig(epochs=3, batch_size=16, sequence_length=8, fit_samples=cap, student=student)
+        optimizer = CountingOptimizer()
+        assert np.isfinite(fit(policy, data, config, optimizer, np.random.default_rng(0)))
+        assert optimizer.steps == steps, (student, cap)
+    env.close()
+
+    path = tmp_path / "capped.yaml"
+    path.write_text("method: dagger\nname: capped\nfit_samples: 1e5\ngate_shift_z: '0.3'\n")
+    loaded = DaggerConfig.from_yaml(path)
+    assert loaded.fit_samples == 100_000 and isinstance(loaded.fit_samples, int) and loaded.gate_shift_z == 0.3
+    path.write_text("method: dagger\nname: capped\nfit_samples: null\n")
+    assert DaggerConfig.from_yaml(path).fit_samples is None
+    path.write_text("method: dagger\nname: capped\nfit_samples: lots\n")
+    with pytest.raises(ValueError, match="fit_samples must be a number, got 'lots'"):
+        DaggerConfig.from_yaml(path)
+    with pytest.raises(ValueError, match="fit_samples must be >= batch_size"):
+        DaggerConfig(fit_samples=100, batch_size=256).validate()
+
+
 def test_the_teacher_is_built_with_its_settings() -> None:
     from racebench.planner import FastPlannerAgent, PlannerAgent
     from racebench.training.dagger import make_teacher

@@ -66,6 +66,9 @@ class DaggerConfig:
     n_envs: int = 16  # envs flown side by side (one batched student call per step)
     beta_decay: float = 0.5  # P(teacher acts) = beta_decay ** iteration
     epochs: int = 2  # passes over the aggregate dataset after each collection
+    # at most this many samples per fit (None: no cap): the epochs' passes, in random order, are cut here, so a
+    # fit's cost stops growing with the aggregate (a cut pass draws a uniform random subset of it)
+    fit_samples: int | None = None
     batch_size: int = 256
     learning_rate: float = 3e-4
     max_samples: int = 250_000  # aggregate capacity; the oldest samples are overwritten beyond it
@@ -108,14 +111,15 @@ class DaggerConfig:
         if "name" not in data:
             raise ValueError(f"{path}: missing key 'name'")
         for f in fields(cls):  # YAML 1.1 reads 3e-4 as a string: convert numbers, name what does not convert
-            if f.name in data and f.type in ("int", "float"):
+            kind = str(f.type).removesuffix(" | None")  # an optional number may also be null
+            if f.name in data and kind in ("int", "float") and not (data[f.name] is None and kind != f.type):
                 try:
                     value = float(data[f.name])
                 except (TypeError, ValueError):
                     raise ValueError(f"{path}: {f.name} must be a number, got {data[f.name]!r}") from None
-                if f.type == "int" and value != int(value):
+                if kind == "int" and value != int(value):
                     raise ValueError(f"{path}: {f.name} must be an integer, got {data[f.name]!r}")
-                data[f.name] = int(value) if f.type == "int" else value
+                data[f.name] = int(value) if kind == "int" else value
         config = cls(**data)
         config.validate(str(path))
         return config
@@ -134,6 +138,10 @@ class DaggerConfig:
             (self.epochs >= 1 and self.batch_size >= 1, "epochs and batch_size must be >= 1"),
             (self.learning_rate > 0, "learning_rate must be > 0"),
             (self.max_samples >= self.batch_size, "max_samples must be >= batch_size"),
+            (
+                self.fit_samples is None or self.fit_samples >= self.batch_size,
+                "fit_samples must be >= batch_size (or null: no cap)",
+            ),
             (0 <= self.seed < EVAL_SEED_BASE, f"seed must be in [0, {EVAL_SEED_BASE})"),
             (self.teacher in TEACHERS, f"teacher must be one of {TEACHERS}, got {self.teacher!r}"),
             (self.sequence_length >= 1, "sequence_length must be >= 1"),
@@ -426,7 +434,8 @@ def sequence_loss(
 
 
 def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng: np.random.Generator) -> float:
-    """``config.epochs`` passes of minibatch MSE regression over the dataset; returns the last epoch's loss.
+    """``config.epochs`` passes of minibatch MSE regression over the dataset, cut at ``config.fit_samples``
+    samples (a recurrent student's: ``fit_samples // sequence_length`` chunks); returns the last pass's loss.
 
     A recurrent student trains on chunks of ``config.sequence_length`` steps (``batch_size // sequence_length``
     chunks a minibatch), each unrolled from the state :func:`chunk_start_states` gave it; the loss averages
@@ -442,8 +451,11 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
         policy.set_training_mode(True)
         first, count, _ = chunks
         per_batch = max(1, config.batch_size // length)
-        for _ in range(config.epochs):
-            order = rng.permutation(len(first))
+        budget = len(first) * config.epochs if config.fit_samples is None else config.fit_samples // length
+        for epoch in range(config.epochs):
+            order = rng.permutation(len(first))[: max(0, budget - epoch * len(first))]
+            if not len(order):
+                break
             losses = []
             for a in range(0, len(order), per_batch):
                 pick = order[a : a + per_batch]
@@ -453,10 +465,13 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
                 optimizer.step()
                 losses.append(error.item())
     else:
-        for _ in range(config.epochs):
-            order = rng.permutation(dataset.size)
+        budget = dataset.size * config.epochs if config.fit_samples is None else config.fit_samples
+        for epoch in range(config.epochs):
+            order = rng.permutation(dataset.size)[: max(0, budget - epoch * dataset.size)]
+            if len(order) < config.batch_size:
+                break
             losses = []
-            for start in range(0, dataset.size - config.batch_size + 1, config.batch_size):
+            for start in range(0, len(order) - config.batch_size + 1, config.batch_size):
                 batch = dataset.batch(order[start : start + config.batch_size])
                 target = batch.pop("action")
                 loss = torch.nn.functional.mse_loss(student_mean(policy, batch), target)
