@@ -343,9 +343,10 @@ def plot_success_curves(
     or, where several runs share a config name (training seeds of one config), their mean with a min–max band.
 
     For comparing methods by cost: a PPO run's success is its training episodes' (from the track start, at
-    the curriculum level of the moment: its promotions are marked), a DAgger run's the student's on the
-    training scenes. Each run is smoothed by :func:`smoothed_success`; seeds are combined by :func:`seed_band`
-    (up to the shortest seed's end). Every run needs a ``wall_s`` column (``racebench train`` writes one).
+    the curriculum level of the moment: its promotions are marked, over seeds at the median of those that
+    reached the level), a DAgger run's the student's on the training scenes. Each run is smoothed by
+    :func:`smoothed_success`; seeds are combined by :func:`seed_band` (up to the shortest seed's end).
+    Every run needs a ``wall_s`` column (``racebench train`` writes one).
     """
     loaded = _load_runs(runs)
     for label, progress in loaded:
@@ -372,13 +373,19 @@ def plot_success_curves(
                 (line,) = ax.plot(band[x] / scale, band["mean"], color=color, label=name if color is None else None)
                 color = line.get_color()
                 ax.fill_between(band[x] / scale, band["min"], band["max"], color=color, alpha=0.2, linewidth=0)
+        # Curriculum promotions: a run's own, or over seeds the median of those that reached the level ("L3 2/3")
+        promotions: dict[float, list[tuple[float, float]]] = {}
         for progress in progresses:
             promoted = progress["level"].diff() > 0
-            for ax, x in ((axes[0], progress["timesteps"] / 1e6), (axes[1], progress["wall_s"] / 60)):
-                for at, level in zip(x[promoted], progress["level"][promoted], strict=True):
-                    ax.axvline(at, color=line.get_color(), linestyle=":", linewidth=1)
-                    ax.annotate(f"L{level:.0f}", (at, 100), xytext=(2, -10), textcoords="offset points",
-                                fontsize=7, color=line.get_color())  # fmt: skip
+            for level, steps, wall in zip(progress["level"][promoted], progress["timesteps"][promoted],
+                                          progress["wall_s"][promoted], strict=True):  # fmt: skip
+                promotions.setdefault(float(level), []).append((steps / 1e6, wall / 60))
+        for level, reached in promotions.items():
+            name = f"L{level:.0f}" + (f" {len(reached)}/{len(progresses)}" if len(progresses) > 1 else "")
+            for ax, at in zip(axes, np.median(np.array(reached), axis=0), strict=True):
+                ax.axvline(at, color=line.get_color(), linestyle=":", linewidth=1)
+                ax.annotate(name, (at, 100), xytext=(2, -10), textcoords="offset points", fontsize=7,
+                            color=line.get_color())  # fmt: skip
     axes[0].set_xlabel("environment steps [millions]")
     axes[1].set_xlabel("wall-clock [min]")
     axes[0].set_ylabel("training success [%]")
