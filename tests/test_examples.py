@@ -165,3 +165,24 @@ def test_paired_outcomes_counts_the_discordant_pairs_and_tests_them_exactly(tmp_
     monkeypatch.setattr("sys.argv", ["paired_outcomes", str(tmp_path / "a"), str(tmp_path / "missing")])
     with pytest.raises(SystemExit, match="missing/episodes.csv does not exist"):
         module.main()
+
+
+def test_seeds_report_takes_the_mean_and_spread_of_validated_records(tmp_path, monkeypatch, capsys) -> None:
+    spec = importlib.util.spec_from_file_location("seeds_report", ROOT / "baselines" / "seeds_report.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    # Three committed 100-episode evaluations on S stand in for three seeds: 76, 69 and 62 laps finished.
+    folders = [ROOT / "baselines/experiments" / name / "eval"
+               for name in ("distill-wide-berth", "distill-stateless-teacher", "distill-teacher-v3")]  # fmt: skip
+    table = module.seed_table(folders)
+    assert table["successes"].tolist() == [76, 69, 62] and (table["n"] == 100).all()
+    summary = module.across_seeds(table).iloc[0]
+    assert (summary["seeds"], round(summary["sr_mean"], 3), round(summary["sr_spread"], 3)) == (3, 0.69, 0.14)
+    assert summary["lap_time_mean"] == pytest.approx(table["lap_time_mean"].mean())
+    monkeypatch.setattr("sys.argv", ["seeds_report", *map(str, folders)])
+    module.main()
+    out = capsys.readouterr().out
+    assert "76/100 = 76 % [67–83]" in out and "| RaceObs-S-v0 | 3 | 69.0 % | 62–76 % (14 points) |" in out
+    monkeypatch.setattr("sys.argv", ["seeds_report", str(tmp_path)])
+    with pytest.raises(SystemExit, match="^seeds_report: no evaluation records at"):
+        module.main()
