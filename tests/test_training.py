@@ -564,3 +564,65 @@ def test_fine_tuning_starts_from_the_student_and_warms_up_the_critic_alone(tmp_p
                   init_from=config.init_from)  # fmt: skip
     with pytest.raises(ValueError, match="another network"):
         train(other, "S", steps=64, seed=3, out=tmp_path / "y", eval_episodes=0)
+
+
+def test_bc_to_the_student_steps_towards_it_along_the_rollout(tmp_path: Path) -> None:
+    """bc_coef: the anchor's actions along a rollout are the ones it takes stepping it (state carried, reset
+    at episode starts); one BC step brings the policy's actions on that rollout closer to them."""
+    from racebench.training.train import StudentBCCallback, frozen_initial_policy, mean_actions_along
+
+    config = small(TrainConfig(name="t", obs_mode="state"), n_envs=2, n_steps=16, batch_size=32,
+                   learning_rate=(1e-3, 1e-3))  # fmt: skip
+    env = make_vec_env("RaceObs-S-Level1-v0", n_envs=2, env_kwargs={"obs_mode": "state"}, vec_env_cls=DummyVecEnv)
+    model = make_model(config, env, seed=0, tensorboard=None)
+    model.save(tmp_path / "student.zip")
+
+    # Along a made-up rollout with an episode start inside it, the actions are predict()'s, one step at a time.
+    anchor = frozen_initial_policy(model, tmp_path / "student.zip")
+    obs = np.random.default_rng(1).uniform(-1, 1, size=(6, 2, 17)).astype(np.float32)
+    starts = np.zeros((6, 2), dtype=np.float32)
+    starts[0], starts[3, 1] = 1.0, 1.0
+    with torch.no_grad():
+        along, last = mean_actions_along(anchor, obs, starts, torch.zeros(1, 2, config.gru_hidden))
+    state, stepped = None, []
+    for o, s in zip(obs, starts, strict=True):
+        action, state = model.predict(o, state=state, episode_start=s.astype(bool), deterministic=True)
+        stepped.append(action)
+    np.testing.assert_allclose(along.numpy().clip(-1, 1), np.stack(stepped), atol=1e-5)
+    np.testing.assert_allclose(last.numpy(), state[0], atol=1e-5)  # the state after the last step, too
+
+    # Move the actor away from the student, fly one rollout (and its PPO update), then take the BC step.
+    with torch.no_grad():
+        for name, parameter in model.policy.named_parameters():
+            if name.startswith("action_net."):
+                parameter.add_(0.3 * torch.randn_like(parameter))
+    bc = StudentBCCallback(anchor, coef=1.0, threads=1)
+    model.learn(config.n_envs * config.n_steps, callback=bc)
+    obs, starts, start_hidden, target = bc.pending
+    assert target.shape == (config.n_steps, config.n_envs, 4)
+
+    def distance() -> float:
+        with torch.no_grad():
+            return float(torch.nn.functional.mse_loss(mean_actions_along(model.policy, obs, starts, start_hidden)[0],
+                                                      target))  # fmt: skip
+
+    before = distance()
+    bc._on_rollout_start()
+    assert bc.distances == [pytest.approx(before, rel=1e-4)] and before > 1e-3
+    assert distance() < before  # one step of the BC loss moved the policy's actions towards the student's
+    env.close()
+
+    with pytest.raises(ValueError, match="bc_coef needs init_from"):
+        TrainConfig(name="t", bc_coef=0.5).validate()
+    with pytest.raises(ValueError, match="bc_coef must be >= 0"):
+        TrainConfig(name="t", bc_coef=-1.0, init_from="x.zip").validate()
+
+
+def test_fine_tuning_with_bc_runs_on_depth_and_reports_its_distance(tmp_path: Path) -> None:
+    config = small(TrainConfig.from_yaml("vision-distill-ppo"), n_envs=4, n_steps=32, batch_size=64)
+    env = make_vec_env("RaceObs-S-v0", n_envs=1, env_kwargs=config.env_kwargs("S"), vec_env_cls=DummyVecEnv)
+    make_model(config, env, seed=7, tensorboard=None).save(tmp_path / "student.zip")
+    env.close()
+    config = dataclasses.replace(config, init_from=str(tmp_path / "student.zip"), critic_warmup=0, bc_coef=1.0)
+    result = train(config, "S", steps=3 * 4 * 32, seed=3, out=tmp_path / "run", eval_episodes=0)
+    assert np.isfinite(result["bc_mse_last"]) and result["bc_mse_last"] >= 0

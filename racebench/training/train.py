@@ -156,6 +156,10 @@ class TrainConfig:
     # tensors are read, no pickled code) and the steps at the start during which only the critic learns.
     init_from: str | None = None
     critic_warmup: int = 0
+    # Behaviour cloning to the init_from policy while fine-tuning (0: none): after each PPO update, one gradient
+    # step on bc_coef x the mean squared distance between the policy's deterministic actions and the frozen
+    # initial policy's along the last rollout (StudentBCCallback), so PPO improves the student without forgetting it
+    bc_coef: float = 0.0
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> TrainConfig:
@@ -207,6 +211,8 @@ class TrainConfig:
             (self.cnn in CNN_KINDS, f"cnn must be one of {CNN_KINDS}"),
             (self.torch_threads >= 1 and self.update_threads >= 1, "torch_threads and update_threads must be >= 1"),
             (self.critic_warmup >= 0, "critic_warmup must be >= 0"),
+            (self.bc_coef >= 0.0, "bc_coef must be >= 0"),
+            (self.bc_coef == 0.0 or self.init_from is not None, "bc_coef needs init_from (the policy to stay near)"),
         ]
         for ok, message in checks:
             if not ok:
@@ -515,11 +521,99 @@ class CriticWarmupCallback(BaseCallback):
         return True
 
 
-def load_policy_weights(model: Any, path: str | Path, log_std: float) -> None:
-    """Start ``model``'s policy from the weights in the SB3 checkpoint ``path`` (the same network).
+def mean_actions_along(
+    policy: Any, obs: dict[str, np.ndarray] | np.ndarray, starts: np.ndarray, hidden: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor | None]:  # fmt: skip
+    """A policy's deterministic actions (before clipping) along a rollout: ``(time, envs, actions)``.
+
+    ``obs`` is the rollout buffer's (``(time, envs, ...)`` arrays), ``starts`` ``(time, envs)`` marks each
+    episode's first step. A recurrent policy's state ``hidden`` ``(1, envs, H)`` is carried step by step and
+    zeroed at every start, as the policy acted; the state after the last step is returned with the actions
+    (``None`` for a feed-forward policy). Gradients flow unless the caller disables them.
+    """
+    from racebench.training.dagger import is_recurrent, student_features, student_head, student_unroll
+
+    steps, envs = starts.shape
+    if isinstance(obs, dict):
+        flat = {k: torch.as_tensor(v.reshape(steps * envs, *v.shape[2:]), device=policy.device) for k, v in obs.items()}
+    else:
+        flat = torch.as_tensor(obs.reshape(steps * envs, *obs.shape[2:]), device=policy.device)
+    features = student_features(policy, flat).view(steps, envs, -1)
+    if not is_recurrent(policy):
+        return student_head(policy, features), None
+    keep = torch.as_tensor(1.0 - starts, dtype=torch.float32, device=policy.device).view(steps, 1, envs, 1)
+    actions = []
+    for t in range(steps):
+        action, output = student_unroll(policy, features[t : t + 1], hidden * keep[t])
+        actions.append(action[0])
+        hidden = output[-1:]
+    return torch.stack(actions), hidden
+
+
+class StudentBCCallback(BaseCallback):
+    """Keep a fine-tuned policy near the policy it started from: behaviour cloning between PPO updates.
+
+    At each rollout's end the frozen initial policy (``anchor``, e.g. the DAgger student) is run along the
+    rollout from its own recurrent state, carried over rollouts, giving its deterministic action at every
+    step. After the PPO update (at the next rollout's start, when the buffer is about to be refilled) the
+    policy is unrolled along the same rollout from the recurrent state it had when the rollout began, and
+    takes one gradient step, with PPO's optimizer and gradient clipping, on ``coef`` x the mean squared
+    distance between its actions and the anchor's. While the actor is frozen (a critic warm-up) the step is
+    skipped. ``distances`` holds each rollout's distance before its step (also logged as ``train/bc_mse``).
+    """
+
+    def __init__(self, anchor: Any, coef: float, threads: int) -> None:
+        super().__init__(0)
+        self.anchor, self.coef, self.threads = anchor, coef, threads
+        self.anchor_hidden: torch.Tensor | None = None
+        self.pending: tuple | None = None
+        self.distances: list[float] = []
+
+    def _on_rollout_end(self) -> None:
+        buffer = self.model.rollout_buffer
+        if isinstance(buffer.observations, dict):
+            obs: Any = {k: v.copy() for k, v in buffer.observations.items()}
+        else:
+            obs = buffer.observations.copy()
+        starts = buffer.episode_starts.copy()
+        recurrent = hasattr(buffer, "hidden_states_pi")
+        if recurrent and self.anchor_hidden is None:
+            self.anchor_hidden = torch.zeros_like(torch.as_tensor(buffer.hidden_states_pi[0]))
+        with torch.no_grad():
+            target, self.anchor_hidden = mean_actions_along(self.anchor, obs, starts, self.anchor_hidden)
+        start_hidden = torch.as_tensor(buffer.hidden_states_pi[0]).clone() if recurrent else None
+        self.pending = (obs, starts, start_hidden, target)
+
+    def _on_rollout_start(self) -> None:
+        if self.pending is None:
+            return
+        obs, starts, start_hidden, target = self.pending
+        self.pending = None
+        policy = self.model.policy
+        if not any(p.requires_grad for n, p in policy.named_parameters() if not critic_parameter(n)):
+            return  # critic warm-up: the actor takes no gradient yet
+        threads = torch.get_num_threads()
+        torch.set_num_threads(self.threads)
+        policy.set_training_mode(True)
+        actions, _ = mean_actions_along(policy, obs, starts, start_hidden)
+        distance = torch.nn.functional.mse_loss(actions, target)
+        policy.optimizer.zero_grad()
+        (self.coef * distance).backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), self.model.max_grad_norm)
+        policy.optimizer.step()
+        policy.set_training_mode(False)
+        torch.set_num_threads(threads)
+        self.distances.append(float(distance.item()))
+        self.logger.record("train/bc_mse", self.distances[-1])
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def policy_weights(path: str | Path, model: Any) -> dict[str, torch.Tensor]:
+    """The policy tensors of the SB3 checkpoint ``path``, checked to fit ``model``'s policy (the same network).
 
     Only the tensors are read (``load_from_zip_file(load_data=False)``: nothing unpickled, so no code runs).
-    log σ is set to ``log_std``: an imitation-learned student never trained it.
     """
     from stable_baselines3.common.save_util import load_from_zip_file
 
@@ -536,9 +630,29 @@ def load_policy_weights(model: Any, path: str | Path, log_std: float) -> None:
     mine = model.policy.state_dict()
     if set(weights) != set(mine) or any(weights[k].shape != mine[k].shape for k in mine):
         raise ValueError(f"init_from: {path} is another network than this config's ({model.policy.__class__.__name__})")
-    model.policy.load_state_dict(weights)
+    return weights
+
+
+def load_policy_weights(model: Any, path: str | Path, log_std: float) -> None:
+    """Start ``model``'s policy from the weights in the SB3 checkpoint ``path`` (:func:`policy_weights`).
+
+    log σ is set to ``log_std``: an imitation-learned student never trained it.
+    """
+    model.policy.load_state_dict(policy_weights(path, model))
     with torch.no_grad():
         model.policy.log_std.fill_(log_std)
+
+
+def frozen_initial_policy(model: Any, path: str | Path) -> Any:
+    """A frozen copy of ``model``'s policy holding the weights of ``path`` (the anchor of ``bc_coef``)."""
+    import copy
+
+    anchor = copy.deepcopy(model.policy)
+    anchor.load_state_dict(policy_weights(path, model))
+    anchor.set_training_mode(False)
+    for parameter in anchor.parameters():
+        parameter.requires_grad_(False)
+    return anchor
 
 
 def _read_progress(path: Path) -> pd.DataFrame | None:
@@ -729,6 +843,9 @@ def train(
         config, level=level, verbose=1, state_file=state_file, promotions=promotions, solved=solved
     )
     progress = ProgressCSVCallback(out / "progress.csv", curriculum)
+    bc = None
+    if config.bc_coef > 0:  # init_from is the anchor, also when resuming (the run's start, not the resumed weights)
+        bc = StudentBCCallback(frozen_initial_policy(model, init_from), config.bc_coef, config.update_threads)
     curriculum.clock = lambda: time.perf_counter() - progress.started  # the run's wall clock, resumes included
     callbacks = CallbackList(
         [
@@ -744,6 +861,7 @@ def train(
             ),
             ThreadsCallback(config.torch_threads, config.update_threads),
             *([CriticWarmupCallback(config.critic_warmup)] if config.critic_warmup else []),
+            *([bc] if bc is not None else []),
         ]
     )
     started = time.perf_counter()
@@ -773,6 +891,8 @@ def train(
         "checkpoint": str(final),
         "init_from": init_from,
     }
+    if bc is not None and bc.distances:
+        summary["bc_mse_last"] = round(bc.distances[-1], 6)  # the policy's distance from its start, last rollout
     if eval_episodes > 0:
         from racebench.evaluation import Evaluator
 
