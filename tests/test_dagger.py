@@ -237,6 +237,8 @@ def test_a_tiny_distillation_run(tmp_path: Path) -> None:
     assert progress["samples"].tolist() == [256, 512]  # every step labelled, aggregated
     assert progress["env_steps"].tolist() == [256, 512]  # the steps flown (samples stop at max_samples)
     assert np.isfinite(progress["loss"]).all()
+    assert (progress["collect_s"] > 0).all() and (progress["fit_s"] > 0).all()  # where each iteration's time went
+    assert (progress["collect_s"] + progress["fit_s"]).sum() <= progress["wall_s"].iloc[-1] + 0.2
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["teacher"] == "planner-fast" and saved["eval"]["n"] == 1  # the fast expert by default
     assert saved["teacher_version"] == BUILTIN_VERSIONS["planner-fast"]

@@ -610,9 +610,13 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     for k in tqdm(range(first, config.iterations), desc="dagger", unit="it", initial=first, total=config.iterations):
         beta = config.beta_decay**k
         torch.set_num_threads(1)
+        tick = time.perf_counter()
         flown = collect(envs, teachers, policy, beta, config.steps_per_iteration, rng, seeds, dataset)
         torch.set_num_threads(config.update_threads)
+        collected = time.perf_counter()
         loss = fit(policy, dataset, config, optimizer, rng)
+        # where an iteration's time goes: flying (teacher, student, envs) against fitting (grows with the aggregate)
+        flown["collect_s"], flown["fit_s"] = round(collected - tick, 1), round(time.perf_counter() - collected, 1)
         # env_steps: every step flown so far (samples, the aggregate's size, stops growing at max_samples)
         flown["env_steps"] = flown.pop("steps") + (int(rows[-1].get("env_steps", rows[-1]["samples"])) if rows else 0)
         rows.append({"iteration": k, "beta": beta, **flown, "samples": dataset.size, "loss": loss,
