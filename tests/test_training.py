@@ -299,7 +299,9 @@ def test_gru_policy_state_is_carried_and_reset_at_episode_start() -> None:
 @pytest.mark.parametrize("config_path", PPO_BASELINES, ids=[p.stem for p in PPO_BASELINES])
 def test_training_smoke_run(tmp_path: Path, config_path: Path) -> None:
     # A fine-tuning config starts from its student (test_fine_tuning_starts_from_the_student): here from scratch.
-    config = small(TrainConfig.from_yaml(config_path), n_envs=4, n_steps=64, batch_size=128, init_from=None)
+    config = small(
+        TrainConfig.from_yaml(config_path), n_envs=4, n_steps=64, batch_size=128, init_from=None, bc_coef=0.0
+    )
     result = train(config, "S", steps=2048, seed=0, out=tmp_path, checkpoint_every=1024, eval_episodes=1)
     assert result["timesteps"] >= 2048 and Path(result["checkpoint"]).is_file()
     progress = pd.read_csv(tmp_path / "progress.csv")
