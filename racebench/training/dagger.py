@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -433,6 +434,17 @@ def sequence_loss(
     return ((actions - target) ** 2 * mask).sum() / (mask.sum() * target.shape[-1])
 
 
+def pass_orders(items: int, epochs: int, cap: int | None, rng: np.random.Generator) -> Iterator[np.ndarray]:
+    """Each pass's random order over ``items`` indices: ``epochs`` passes, cut once ``cap`` indices have been
+    given in all (``None``: never), so a cut pass is a uniform random subset."""
+    budget = items * epochs if cap is None else cap
+    for epoch in range(epochs):
+        order = rng.permutation(items)[: max(0, budget - epoch * items)]
+        if not len(order):
+            return
+        yield order
+
+
 def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng: np.random.Generator) -> float:
     """``config.epochs`` passes of minibatch MSE regression over the dataset, cut at ``config.fit_samples``
     samples (a recurrent student's: ``fit_samples // sequence_length`` chunks); returns the last pass's loss.
@@ -451,11 +463,8 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
         policy.set_training_mode(True)
         first, count, _ = chunks
         per_batch = max(1, config.batch_size // length)
-        budget = len(first) * config.epochs if config.fit_samples is None else config.fit_samples // length
-        for epoch in range(config.epochs):
-            order = rng.permutation(len(first))[: max(0, budget - epoch * len(first))]
-            if not len(order):
-                break
+        cap = None if config.fit_samples is None else config.fit_samples // length
+        for order in pass_orders(len(first), config.epochs, cap, rng):
             losses = []
             for a in range(0, len(order), per_batch):
                 pick = order[a : a + per_batch]
@@ -465,11 +474,9 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
                 optimizer.step()
                 losses.append(error.item())
     else:
-        budget = dataset.size * config.epochs if config.fit_samples is None else config.fit_samples
-        for epoch in range(config.epochs):
-            order = rng.permutation(dataset.size)[: max(0, budget - epoch * dataset.size)]
+        for order in pass_orders(dataset.size, config.epochs, config.fit_samples, rng):
             if len(order) < config.batch_size:
-                break
+                break  # too few left for one minibatch
             losses = []
             for start in range(0, len(order) - config.batch_size + 1, config.batch_size):
                 batch = dataset.batch(order[start : start + config.batch_size])
