@@ -570,6 +570,38 @@ def _stack(observations: list[Any], obs_mode: str) -> Any:
     return np.stack([np.asarray(o, dtype=np.float32) for o in observations])
 
 
+#: Attributes of an SB3 algorithm that only resuming its training reads: the last rollout's observations, episode
+#: starts and recurrent states, and the episode-statistics buffers. A policy-only checkpoint leaves them out.
+TRAINING_ONLY_ATTRIBUTES = (
+    "_last_obs",
+    "_last_original_obs",
+    "_last_episode_starts",
+    "_last_lstm_states",
+    "ep_info_buffer",
+    "ep_success_buffer",
+)
+
+
+def export_policy(model: Any, path: str | Path) -> Path:
+    """Save an SB3 model as a policy-only checkpoint: the weights and what loading and acting need, with the
+    optimizer's state (Adam's moments: twice the weights) and :data:`TRAINING_ONLY_ATTRIBUTES` left out.
+
+    It loads like any SB3 save and acts exactly as ``model`` does; training resumed from it starts with fresh
+    Adam moments. ``model`` itself is left as it was.
+    """
+    path = Path(path)
+    if path.suffix != ".zip":
+        raise ValueError(f"a policy-only checkpoint is an SB3 .zip, not {str(path)!r}")
+    optimizer = model.policy.optimizer
+    # A fresh optimizer of the same kind and settings: its state dict is the settings alone.
+    model.policy.optimizer = type(optimizer)(model.policy.parameters(), **optimizer.defaults)
+    try:
+        model.save(path, exclude=[name for name in TRAINING_ONLY_ATTRIBUTES if name in model.__dict__])
+    finally:
+        model.policy.optimizer = optimizer
+    return path
+
+
 def export_onnx(model: Any, path: str | Path) -> Path:
     """Export the deterministic actor of an SB3 actor-critic policy to ONNX (see :class:`OnnxAgent`).
 

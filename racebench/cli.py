@@ -244,6 +244,13 @@ def build_parser() -> argparse.ArgumentParser:
     p_onnx.add_argument("--out", default=None, help="ONNX path (default: beside the checkpoint, .onnx)")
     p_onnx.add_argument("--trust-code", action="store_true", help="allow a checkpoint outside the shipped ones")
 
+    p_export = sub.add_parser(
+        "export-policy", help="write an SB3 checkpoint without its optimizer state (a policy-only .zip to commit)"
+    )
+    p_export.add_argument("checkpoint", help="SB3 / sb3-contrib .zip")
+    p_export.add_argument("--out", required=True, help="the policy-only .zip to write")
+    p_export.add_argument("--trust-code", action="store_true", help="allow a checkpoint outside the shipped ones")
+
     p_bench = sub.add_parser("bench", help="throughput: depth frames/s of both renderers, env steps/s, memory")
     p_bench.add_argument("--quick", action="store_true", help="smoke test of ~10 s (tiny sizes)")
     p_bench.add_argument("--out", default="bench.csv", help="CSV of every measurement (default bench.csv)")
@@ -331,6 +338,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (AgentLoadError, ValueError) as exc:
             raise SystemExit(f"racebench export-onnx: {exc}") from exc
         log.info(f"wrote {out} (sha256 {sha256_file(out)})")
+    elif args.command == "export-policy":
+        return _export_policy(args)
     elif args.command == "distill":
         from racebench.training.dagger import DaggerConfig, distill
 
@@ -525,6 +534,37 @@ def _summaries(results: Sequence[str], command: str):
         return read_summaries(results)
     except (OSError, ValueError) as exc:
         raise SystemExit(f"racebench {command}: {exc}") from exc
+
+
+def _export_policy(args: argparse.Namespace) -> int:
+    """``racebench export-policy``: the checkpoint's policy without optimizer state, checked to act the same."""
+    import shutil
+
+    from racebench.agents import AgentLoadError, SB3Agent, export_policy, vecnormalize_path
+
+    source, out = Path(args.checkpoint), Path(args.out)
+    try:
+        agent = SB3Agent(source, trust_code=args.trust_code)
+        if out.resolve() == source.resolve():
+            raise ValueError(f"--out {str(out)!r} is the checkpoint itself; write the policy-only copy elsewhere")
+        # Observation statistics change the actions, so they travel with the policy (rewards-only ones do not).
+        stats = vecnormalize_path(source) if agent.normalizer is not None else None
+        beside = out.parent / "vecnormalize.pkl"
+        if beside.exists() and (stats is None or beside.read_bytes() != stats.read_bytes()):
+            raise ValueError(f"{str(beside)!r} would be read as this policy's observation statistics; remove it")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        export_policy(agent.model, out)
+        if stats is not None:
+            shutil.copyfile(stats, beside)
+        copy = SB3Agent(out, trust_code=True)
+        theirs, ours = agent.model.policy.state_dict(), copy.model.policy.state_dict()
+        if theirs.keys() != ours.keys() or not all(theirs[k].equal(ours[k]) for k in theirs):
+            raise ValueError(f"the weights read back from {str(out)!r} differ from the checkpoint's")
+    except (AgentLoadError, OSError, ValueError) as exc:
+        raise SystemExit(f"racebench export-policy: {exc}") from exc
+    print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, {source.stat().st_size / 1e6:.1f} MB before); "
+          f"policy sha256 {copy.sha256}")  # fmt: skip
+    return 0
 
 
 def _evaluate(args: argparse.Namespace) -> int:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import signal
@@ -10,6 +11,7 @@ import sys
 import textwrap
 import threading
 import time
+import zipfile
 from pathlib import Path
 
 import gymnasium as gym
@@ -237,6 +239,52 @@ def test_onnx_export_round_trip(tiny_ppo, tmp_path: Path) -> None:
     agent.reset()
     for o in np.random.default_rng(1).uniform(-1, 1, size=(5, 17)).astype(np.float32):
         np.testing.assert_allclose(agent.act(o), model.predict(o, deterministic=True)[0], atol=1e-5)
+
+
+def test_policy_only_export_keeps_the_policy_and_drops_the_optimizer(tiny_ppo, tmp_path: Path) -> None:
+    import torch
+
+    from racebench.agents import export_policy
+
+    model, path = tiny_ppo
+    optimizer = model.policy.optimizer
+    out = export_policy(model, tmp_path / "policy.zip")
+    assert model.policy.optimizer is optimizer and optimizer.state  # the model keeps its Adam moments
+    with zipfile.ZipFile(out) as archive:
+        assert torch.load(io.BytesIO(archive.read("policy.optimizer.pth")))["state"] == {}
+        assert "_last_obs" not in json.loads(archive.read("data"))
+    agent = load_agent(str(out), trust_code=True)
+    for o in np.random.default_rng(2).uniform(-1, 1, size=(5, 17)).astype(np.float32):
+        np.testing.assert_array_equal(agent.act(o), model.predict(o, deterministic=True)[0])
+    with pytest.raises(ValueError, match="not 'x.onnx'"):
+        export_policy(model, "x.onnx")
+
+
+def test_export_policy_cli_on_the_gru_checkpoint(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from racebench import cli
+
+    checkpoint = Path(__file__).parents[1] / "baselines/checkpoints/vision-ppo-S/vision-ppo-S.zip"
+    out = tmp_path / "lean" / "vision-ppo-S.zip"
+    assert cli.main(["export-policy", str(checkpoint), "--out", str(out)]) == 0
+    assert "policy sha256" in capsys.readouterr().out
+    assert out.stat().st_size < checkpoint.stat().st_size / 3  # the optimizer and last rollout were most of it
+    full, lean = load_agent(str(checkpoint)), load_agent(str(out), trust_code=True)
+    env = gym.make("RaceObs-S-v0")
+    obs, _ = env.reset(seed=EVAL_SEED_BASE)
+    full.reset()
+    lean.reset()
+    for _ in range(10):
+        action = full.act(obs)
+        np.testing.assert_array_equal(lean.act(obs), action)
+        obs, *_ = env.step(action)
+    with pytest.raises(SystemExit, match="is the checkpoint itself"):
+        cli.main(["export-policy", str(out), "--out", str(out), "--trust-code"])
+    with pytest.raises(SystemExit, match="pass --trust-code"):
+        cli.main(["export-policy", str(out), "--out", str(tmp_path / "again.zip")])
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "vecnormalize.pkl").write_bytes(b"stale")
+    with pytest.raises(SystemExit, match="would be read as this policy's observation statistics"):
+        cli.main(["export-policy", str(checkpoint), "--out", str(tmp_path / "other" / "p.zip")])
 
 
 def test_recurrent_sb3_checkpoint_carries_state(tmp_path: Path) -> None:
