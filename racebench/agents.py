@@ -66,7 +66,9 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "a9648364a3a9c09e80189685eaecd34bfa47c1812bb7de8ab5a5cf00bd2bcd92": "vision-ppo-S/vision-ppo-S.zip",
     "3197e89e15de4f01be8cfb9e70d3595d9c50f3a15a5f99ea13b505429dfcc6b9": "state-ppo-S/state-ppo-S.zip",
     "3275c4e846ca85e5265e0a26ee96a550e17145365d5c7b7430f5f37f3c748c20": "vision-dagger-S/vision-dagger-S.zip",
-    "284472ccda7ca9bb8dacb0445ab51e0d29cd3d7645e2cb72ff469957506fb600": "vision-distill-S/vision-distill-S.zip",
+    "284472ccda7ca9bb8dacb0445ab51e0d29cd3d7645e2cb72ff469957506fb600": "vision-distill-v1-S/vision-distill-S.zip",
+    "06e8ee03f239db95d483f61c06a53217da2d772652112c8fe6ac89feacf6f7f9": "vision-distill-S/vision-distill-S.zip",
+    "331274fb6af291ed503425c6995ab14cb3ff5d6d939701883a56c702bf7c40af": "vision-distill-ppo-S/vision-distill-ppo-S.zip",
     "75721e4a6e948352f99586a674d9ab24afb3fb07bc62ddaf6949b783c68d8d29": "vision-dagger-J/vision-dagger-J.zip",
     "0cd4efa09868e16ae77ebeb21d6b954b0cb6f81a1db5ad208b059c88020ad403": "vision-dagger-Circle/vision-dagger-Circle.zip",
 }

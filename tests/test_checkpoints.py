@@ -16,7 +16,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pandas as pd
 import pytest
+import yaml
 
 from racebench import ENV_VERSION
 from racebench.agents import TRUSTED_CHECKPOINTS
@@ -35,10 +37,20 @@ def main_env(checkpoint: Path) -> str:
     return f"RaceObs-{checkpoint.parent.name.rsplit('-', 1)[1]}-v0"
 
 
+def record_folders(checkpoint: Path) -> list[Path]:
+    """Where the leaderboard entry of ``checkpoint`` keeps its records (its folder's ``eval/`` if no entry names it):
+    an entry may point at an experiment's evaluation of the same file instead of a copy."""
+    for entry in sorted(ROOT.glob("results/leaderboard/*/entry.yaml")):
+        meta = yaml.safe_load(entry.read_text())
+        if ROOT / str(meta.get("policy", "")) == checkpoint:
+            return [ROOT / folder for folder in meta["records"]]
+    return [checkpoint.parent / "eval"]
+
+
 def committed_count(checkpoint: Path) -> tuple[int, int]:
     """(successes, episodes) of the committed evaluation of ``checkpoint`` on its main id, from its records."""
     env_id = main_env(checkpoint)
-    records = load_records(checkpoint.parent / "eval")
+    records = pd.concat([load_records(folder) for folder in record_folders(checkpoint)], ignore_index=True)
     records = records[records["env_id"] == env_id]
     assert len(records) >= 100, f"{checkpoint.parent.name}: commit at least 100 episodes of {env_id}"
     assert set(records["policy_sha256"]) == {sha256_file(checkpoint)}, "evaluation of another file"
