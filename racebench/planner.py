@@ -15,11 +15,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 from racebench.control import GateFollower, acceleration_to_ctbr
 from racebench.obstacles import _SEGMENT_STEP, _FreeSpace, find_corridor
 from racebench.quadrotor import QuadrotorParams
 from racebench.reward import wrap_angle
+from racebench.scene import _clearance_batch
 
 
 def speed_profile(
@@ -197,15 +199,6 @@ def pull_taut(scene, polyline: np.ndarray, radius: float) -> np.ndarray:
     return np.array(kept)
 
 
-def clearance_and_gradient(scene, points: np.ndarray, eps: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
-    """Clearance at each point and the unit direction in which it grows fastest (central differences),
-    from one batched distance query."""
-    offsets = np.concatenate([np.zeros((1, 3)), np.eye(3) * eps, -np.eye(3) * eps])
-    values = scene_clearance(scene, (points[None, :, :] + offsets[:, None, :]).reshape(-1, 3)).reshape(7, -1)
-    grad = (values[1:4] - values[4:7]).T
-    return values[0], grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-9)
-
-
 def relax(
     scene,
     polyline: np.ndarray,
@@ -225,52 +218,147 @@ def relax(
     centre: the opening must still allow oblique crossings, which round a turn), a push away from it. A point's move is
     not taken if it would bring it closer than ``min_clearance`` to the scene. Moves are small, so the
     path keeps threading the same gate openings; the two first and last points stay fixed. Coarse
-    spacing first (turns spread fast), then fine."""
-    gate_centres = np.array([g.center for g in scene.gates])
+    spacing first (turns spread fast), then fine.
+
+    Each stage's iterations run compiled (:func:`_relax_stage`); ``tests/test_planner_fast.py`` holds the
+    same algorithm in numpy and checks that both give the same path bit for bit."""
+    gate_centres = np.array([g.center for g in scene.gates], dtype=np.float64)
+    tables = scene.clearance_tables()
+    low, high = np.asarray(scene.arena_low, dtype=np.float64), np.asarray(scene.arena_high, dtype=np.float64)
     points = polyline
     for spacing in spacings:
         points, _ = resample(points, spacing)
         if len(points) < 5:
             continue
-        # No resampling inside a stage: the Laplacian terms keep the spacing even on their own, and
-        # resampling would place points on segments that were only proven clear at their samples.
-        for _ in range(iterations):
-            step = np.zeros_like(points)
-            fourth = points[:-4] - 4 * points[1:-3] + 6 * points[2:-2] - 4 * points[3:-1] + points[4:]
-            step[2:-2] -= bending * fourth
-            step[1:-1] += tension * (0.5 * (points[:-2] + points[2:]) - points[1:-1])
+        points = _relax_stage(
+            np.ascontiguousarray(points, dtype=np.float64), gate_centres, *tables, low, high,
+            float(min_clearance), float(wanted_clearance), float(gate_clearance), float(gate_floor),
+            int(iterations), float(bending), float(tension), float(push),
+        )  # fmt: skip
+    return points
+
+
+@njit(cache=True)
+def _midpoints(points: np.ndarray) -> np.ndarray:
+    """``0.5 * (points[:-1] + points[1:])``."""
+    out = np.empty((len(points) - 1, 3))
+    for i in range(len(points) - 1):
+        for d in range(3):
+            out[i, d] = 0.5 * (points[i, d] + points[i + 1, d])
+    return out
+
+
+@njit(cache=True)
+def _relax_stage(
+    points: np.ndarray,
+    gate_centres: np.ndarray,
+    centre: np.ndarray,
+    half: np.ndarray,
+    cos: np.ndarray,
+    sin: np.ndarray,
+    rounding: np.ndarray,
+    reach: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+    min_clearance: float,
+    wanted_clearance: float,
+    gate_clearance: float,
+    gate_floor: float,
+    iterations: int,
+    bending: float,
+    tension: float,
+    push: float,
+) -> np.ndarray:
+    """One spacing stage of :func:`relax`: ``iterations`` moves of the band (no resampling inside a stage:
+    the Laplacian terms keep the spacing even on their own, and resampling would place points on segments
+    that were only proven clear at their samples). Every float operation is the numpy version's, in its order."""
+    n = len(points)
+    eps = 0.02
+    points = points.copy()
+    probes = np.empty((7 * n, 3))
+    for _ in range(iterations):
+        step = np.zeros((n, 3))
+        for i in range(2, n - 2):
+            for d in range(3):
+                fourth = (
+                    points[i - 2, d] - 4.0 * points[i - 1, d] + 6.0 * points[i, d] - 4.0 * points[i + 1, d]
+                    + points[i + 2, d]
+                )  # fmt: skip
+                step[i, d] -= bending * fourth
+        for i in range(1, n - 1):
+            for d in range(3):
+                step[i, d] += tension * (0.5 * (points[i - 1, d] + points[i + 1, d]) - points[i, d])
+        # Clearance and its gradient (central differences, one batched query of 7 probes per point).
+        for r in range(7):
+            for i in range(n):
+                for d in range(3):
+                    probes[r * n + i, d] = points[i, d]
+                if r >= 1:
+                    axis = (r - 1) % 3
+                    probes[r * n + i, axis] = points[i, axis] + (eps if r <= 3 else -eps)
+        values = _clearance_batch(probes, centre, half, cos, sin, rounding, reach, low, high)
+        clearance = values[:n]
+        at_gate = np.zeros(n, dtype=np.bool_)
+        for i in range(n):
+            g = np.empty(3)
+            for d in range(3):
+                g[d] = values[(1 + d) * n + i] - values[(4 + d) * n + i]
+            norm = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+            for k in range(len(gate_centres)):
+                dx = points[i, 0] - gate_centres[k, 0]
+                dy = points[i, 1] - gate_centres[k, 1]
+                dz = points[i, 2] - gate_centres[k, 2]
+                if math.sqrt(dx * dx + dy * dy + dz * dz) < 0.8:
+                    at_gate[i] = True
             # Near a gate the wanted clearance is what the opening allows a little off its centre.
-            clearance, gradient = clearance_and_gradient(scene, points)
-            at_gate = np.any(np.linalg.norm(points[:, None, :] - gate_centres[None], axis=2) < 0.8, axis=1)
-            wanted = np.where(at_gate, gate_clearance, wanted_clearance)
-            near = np.flatnonzero(clearance < wanted)
-            if len(near):
-                step[near] += push * (wanted - clearance)[near, None] * gradient[near]
-            step[[0, 1, -2, -1]] = 0.0
-            # Cap each move well below the thinnest gate bar plus twice the clearance, so no point can hop
-            # across a bar in one step: the path stays threaded through every opening it threaded before.
-            length = np.linalg.norm(step, axis=1, keepdims=True)
-            step *= np.minimum(1.0, 0.05 / np.maximum(length, 1e-12))
-            target = points + step
-            # A move counts only if the point and the midpoints of its two segments stay clear: the
-            # samples alone could let a segment cut a corner between them.
-            # Inside a gate zone the floor is higher: the path crosses the opening away from its bars.
-            floor = np.where(at_gate, max(min_clearance, gate_floor), min_clearance)
-            both = scene_clearance(scene, np.concatenate([target, 0.5 * (target[:-1] + target[1:])]))
-            after, middle = both[: len(target)], both[len(target) :]
-            ok = (after >= floor) | (after >= np.minimum(clearance, floor))  # below the floor: no worse
-            moved = np.where(ok[:, None], target, points)
-            if not ok.all():  # the midpoints above were of the all-moved path
-                middle = scene_clearance(scene, 0.5 * (moved[:-1] + moved[1:]))
-            while True:  # undo moves until every segment's midpoint of the result is clear
-                bad = np.flatnonzero(middle < min_clearance - 1e-9)
-                bad = bad[ok[bad] | ok[bad + 1]]  # segments no move touched stay as they were
-                if not len(bad):
-                    break
-                ok[bad] = ok[bad + 1] = False  # each pass undoes at least one move: the loop ends
-                moved = np.where(ok[:, None], target, points)
-                middle = scene_clearance(scene, 0.5 * (moved[:-1] + moved[1:]))
-            points = moved
+            wanted = gate_clearance if at_gate[i] else wanted_clearance
+            if clearance[i] < wanted:
+                scale = push * (wanted - clearance[i])
+                for d in range(3):
+                    step[i, d] += scale * (g[d] / max(norm, 1e-9))
+        for i in (0, 1, n - 2, n - 1):
+            step[i, 0] = step[i, 1] = step[i, 2] = 0.0
+        # Cap each move well below the thinnest gate bar plus twice the clearance, so no point can hop
+        # across a bar in one step: the path stays threaded through every opening it threaded before.
+        target = np.empty((n, 3))
+        for i in range(n):
+            length = math.sqrt(step[i, 0] * step[i, 0] + step[i, 1] * step[i, 1] + step[i, 2] * step[i, 2])
+            factor = min(1.0, 0.05 / max(length, 1e-12))
+            for d in range(3):
+                target[i, d] = points[i, d] + step[i, d] * factor
+        # A move counts only if the point and the midpoints of its two segments stay clear: the samples
+        # alone could let a segment cut a corner between them. Inside a gate zone the floor is higher: the
+        # path crosses the opening away from its bars.
+        both = _clearance_batch(
+            np.concatenate((target, _midpoints(target))), centre, half, cos, sin, rounding, reach, low, high
+        )
+        ok = np.empty(n, dtype=np.bool_)
+        moved = np.empty((n, 3))
+        for i in range(n):
+            floor = max(min_clearance, gate_floor) if at_gate[i] else min_clearance
+            after = both[i]
+            ok[i] = (after >= floor) or (after >= min(clearance[i], floor))  # below the floor: no worse
+            for d in range(3):
+                moved[i, d] = target[i, d] if ok[i] else points[i, d]
+        middle = both[n:]
+        if not ok.all():  # the midpoints above were of the all-moved path
+            middle = _clearance_batch(_midpoints(moved), centre, half, cos, sin, rounding, reach, low, high)
+        while True:  # undo moves until every segment's midpoint of the result is clear
+            undone = False
+            bad = np.zeros(n - 1, dtype=np.bool_)
+            for j in range(n - 1):  # segments no move touched stay as they were
+                bad[j] = middle[j] < min_clearance - 1e-9 and (ok[j] or ok[j + 1])
+            for j in range(n - 1):
+                if bad[j]:
+                    ok[j] = ok[j + 1] = False  # each pass undoes at least one move: the loop ends
+                    undone = True
+            if not undone:
+                break
+            for i in range(n):
+                for d in range(3):
+                    moved[i, d] = target[i, d] if ok[i] else points[i, d]
+            middle = _clearance_batch(_midpoints(moved), centre, half, cos, sin, rounding, reach, low, high)
+        points = moved
     return points
 
 

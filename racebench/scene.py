@@ -219,6 +219,11 @@ class Scene:
             raise ValueError(f"low and high must have shape (3,), got {low.shape} and {high.shape}")
         return _clearance_batch(pts, *self._point_tables, self._footprint_reach, low, high)
 
+    def clearance_tables(self) -> tuple[np.ndarray, ...]:
+        """The arrays :meth:`clearance` hands its compiled kernel (``_clearance_batch``), for compiled callers
+        that query clearances in a loop of their own (:func:`racebench.planner.relax`)."""
+        return (*self._point_tables, self._footprint_reach)
+
     @cached_property
     def _footprint_reach(self) -> np.ndarray:
         """Radius of each primitive's footprint circle about its centre (for :meth:`clearance`'s culling)."""

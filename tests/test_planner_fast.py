@@ -19,6 +19,8 @@ from racebench.planner import (
     limit_jerk,
     minimum_time_speeds,
     pull_taut,
+    relax,
+    resample,
     scene_clearance,
     thrust_limited_speeds,
 )
@@ -359,3 +361,84 @@ def test_a_replanning_expert_plans_from_where_it_is_thrown_through_the_gates_sti
 def test_bad_replanning_settings_are_refused(kwargs):
     with pytest.raises(ValueError, match=next(iter(kwargs))):
         FastPlannerAgent(**kwargs)
+
+
+def relax_in_numpy(
+    scene,
+    polyline: np.ndarray,
+    min_clearance: float,
+    wanted_clearance: float,
+    gate_clearance: float = 0.4,
+    gate_floor: float = 0.32,
+    spacings: tuple[float, ...] = (0.4, 0.2),
+    iterations: int = 350,
+    bending: float = 0.06,
+    tension: float = 0.05,
+    push: float = 0.1,
+) -> np.ndarray:
+    """:func:`racebench.planner.relax` as it was written before it was compiled: whole-array numpy steps, the
+    reference the compiled stage must match bit for bit."""
+    gate_centres = np.array([g.center for g in scene.gates])
+    offsets = np.concatenate([np.zeros((1, 3)), np.eye(3) * 0.02, -np.eye(3) * 0.02])
+    points = polyline
+    for spacing in spacings:
+        points, _ = resample(points, spacing)
+        if len(points) < 5:
+            continue
+        for _ in range(iterations):
+            step = np.zeros_like(points)
+            fourth = points[:-4] - 4 * points[1:-3] + 6 * points[2:-2] - 4 * points[3:-1] + points[4:]
+            step[2:-2] -= bending * fourth
+            step[1:-1] += tension * (0.5 * (points[:-2] + points[2:]) - points[1:-1])
+            probes = (points[None, :, :] + offsets[:, None, :]).reshape(-1, 3)
+            values = scene_clearance(scene, probes).reshape(7, -1)
+            grad = (values[1:4] - values[4:7]).T
+            clearance, gradient = values[0], grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-9)
+            at_gate = np.any(np.linalg.norm(points[:, None, :] - gate_centres[None], axis=2) < 0.8, axis=1)
+            wanted = np.where(at_gate, gate_clearance, wanted_clearance)
+            near = np.flatnonzero(clearance < wanted)
+            if len(near):
+                step[near] += push * (wanted - clearance)[near, None] * gradient[near]
+            step[[0, 1, -2, -1]] = 0.0
+            length = np.linalg.norm(step, axis=1, keepdims=True)
+            step *= np.minimum(1.0, 0.05 / np.maximum(length, 1e-12))
+            target = points + step
+            floor = np.where(at_gate, max(min_clearance, gate_floor), min_clearance)
+            both = scene_clearance(scene, np.concatenate([target, 0.5 * (target[:-1] + target[1:])]))
+            after, middle = both[: len(target)], both[len(target) :]
+            ok = (after >= floor) | (after >= np.minimum(clearance, floor))
+            moved = np.where(ok[:, None], target, points)
+            if not ok.all():
+                middle = scene_clearance(scene, 0.5 * (moved[:-1] + moved[1:]))
+            while True:
+                bad = np.flatnonzero(middle < min_clearance - 1e-9)
+                bad = bad[ok[bad] | ok[bad + 1]]
+                if not len(bad):
+                    break
+                ok[bad] = ok[bad + 1] = False
+                moved = np.where(ok[:, None], target, points)
+                middle = scene_clearance(scene, 0.5 * (moved[:-1] + moved[1:]))
+            points = moved
+    return points
+
+
+@pytest.mark.parametrize("env_id", ["RaceObs-S-v0", "RaceObs-Circle-v0", "RaceObs-J-Density5-v0"])
+def test_compiled_relax_gives_the_numpy_path_bit_for_bit(env_id: str) -> None:
+    """The compiled smoothing stage is the numpy algorithm, operation for operation: same path to the last bit
+    on every corridor candidate of several scenes (so planner-fast's plans, and its records, do not move)."""
+    env = gym.make(env_id).unwrapped
+    planner = FastPlannerAgent()
+    compared = 0
+    for seed in range(3):
+        env.reset(seed=seed)
+        start = np.array(env.drone.position, dtype=float)
+        for clearance in planner.corridor_clearances[:2]:
+            polyline = planner._taut_corridor(env.scene, start, clearance)
+            if polyline is None:
+                continue
+            args = (env.scene, polyline, min(planner.clearance, clearance), planner.wanted_clearance)
+            kwargs = {"gate_clearance": planner.gate_clearance, "gate_floor": planner.gate_floor}
+            np.testing.assert_array_equal(relax(*args, **kwargs), relax_in_numpy(*args, **kwargs))
+            compared += 1
+    env.close()
+    assert compared >= 3
