@@ -32,6 +32,7 @@ import importlib
 import importlib.util
 import io
 import json
+import os
 import pickle
 import re
 import zipfile
@@ -601,10 +602,13 @@ def export_policy(model: Any, path: str | Path) -> Path:
     optimizer = model.policy.optimizer
     # A fresh optimizer of the same kind and settings: its state dict is the settings alone.
     model.policy.optimizer = type(optimizer)(model.policy.parameters(), **optimizer.defaults)
+    partial = path.with_name(f".{path.stem}.partial.zip")  # renamed into place: never a half-written policy
     try:
-        model.save(path, exclude=[name for name in TRAINING_ONLY_ATTRIBUTES if name in model.__dict__])
+        model.save(partial, exclude=[name for name in TRAINING_ONLY_ATTRIBUTES if name in model.__dict__])
+        os.replace(partial, path)
     finally:
         model.policy.optimizer = optimizer
+        partial.unlink(missing_ok=True)
     return path
 
 
