@@ -70,10 +70,10 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "284472ccda7ca9bb8dacb0445ab51e0d29cd3d7645e2cb72ff469957506fb600": "vision-distill-v1-S/vision-distill-S.zip",
     "06e8ee03f239db95d483f61c06a53217da2d772652112c8fe6ac89feacf6f7f9": "vision-distill-S/vision-distill-S.zip",
     "331274fb6af291ed503425c6995ab14cb3ff5d6d939701883a56c702bf7c40af": "vision-distill-ppo-S/vision-distill-ppo-S.zip",
-    "09d250dfe6fc6998b370a8fcbed3edc974446e715b0f3ba7ee1a88cc9f107149": (
+    "285ab9bce6a778da2b211355f10184fa205996d4cfc7d66ae3bdcbc6b208b6b1": (
         "vision-distill-Circle/vision-distill-Circle.zip"
     ),
-    "44a0587a94f61fba3eb72663564212ce219ae9ec2a0940c023d2f522f89f8b33": "vision-distill-J/vision-distill-J.zip",
+    "b15d357773f7cb5a045eb4c51cef24a1d3ed567227f5b0e2d245b5e716feaf4e": "vision-distill-J/vision-distill-J.zip",
     "75721e4a6e948352f99586a674d9ab24afb3fb07bc62ddaf6949b783c68d8d29": "vision-dagger-J/vision-dagger-J.zip",
     "0cd4efa09868e16ae77ebeb21d6b954b0cb6f81a1db5ad208b059c88020ad403": "vision-dagger-Circle/vision-dagger-Circle.zip",
 }
