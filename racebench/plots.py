@@ -336,6 +336,41 @@ def seed_band(curves: list[pd.DataFrame], x: str, points: int = 200) -> pd.DataF
     return pd.DataFrame({x: grid, "mean": values.mean(0), "min": values.min(0), "max": values.max(0)})
 
 
+def _summary_path(run: str | Path, key: str) -> str | None:
+    """``summary.json``'s ``key`` (a checkpoint path) of a run directory, normalised for comparison; None if absent."""
+    run = Path(run)
+    summary = (run if run.is_dir() else run.parent) / "summary.json"
+    if not summary.is_file():
+        return None
+    value = json.loads(summary.read_text()).get(key)
+    return Path(value).as_posix() if isinstance(value, str) else None
+
+
+def offsets_after_students(runs: list[str | Path], progresses: list[pd.DataFrame]) -> list[tuple[float, float]]:
+    """``(steps, wall_s)`` to add to each run's curve so that a fine-tuning starts where its student's run ended.
+
+    A run whose ``summary.json`` has ``init_from`` equal to another given run's ``checkpoint`` started from that
+    run's policy: its cost is the student's plus its own, so it is shifted by the student's last ``timesteps`` and
+    ``wall_s`` (chains of fine-tunings add up). A run whose student is not among ``runs`` keeps offset 0.
+    """
+    checkpoints = {_summary_path(run, "checkpoint"): i for i, run in enumerate(runs)}
+    checkpoints.pop(None, None)
+    offsets: list[tuple[float, float] | None] = [None] * len(runs)
+
+    def offset(i: int, seen: frozenset[int]) -> tuple[float, float]:
+        if offsets[i] is None:
+            parent = checkpoints.get(_summary_path(runs[i], "init_from"))
+            if parent is None or parent in seen:  # no student given (or a cycle of edited summaries)
+                offsets[i] = (0.0, 0.0)
+            else:
+                steps, wall = offset(parent, seen | {i})
+                last = progresses[parent]
+                offsets[i] = (steps + float(last["timesteps"].max()), wall + float(last["wall_s"].max()))
+        return offsets[i]
+
+    return [offset(i, frozenset({i})) for i in range(len(runs))]
+
+
 def plot_success_curves(
     runs: list[str | Path], path: str | Path, window_steps: int = 50_000, dpi: int = DEFAULT_DPI
 ) -> Path:
@@ -346,7 +381,9 @@ def plot_success_curves(
     the curriculum level of the moment: its promotions are marked, over seeds at the median of those that
     reached the level), a DAgger run's the student's on the training scenes. Each run is smoothed by
     :func:`smoothed_success`; seeds are combined by :func:`seed_band` (up to the shortest seed's end).
-    Every run needs a ``wall_s`` column (``racebench train`` writes one).
+    Every run needs a ``wall_s`` column (``racebench train`` writes one). A fine-tuning given together with the
+    run of the policy it started from (``init_from``) is drawn after that run's steps and wall clock
+    (:func:`offsets_after_students`), so its x axes show the whole cost.
     """
     loaded = _load_runs(runs)
     for label, progress in loaded:
@@ -354,6 +391,11 @@ def plot_success_curves(
             raise ValueError(f"{label}: progress.csv has no wall_s column (wall-clock time is needed)")
         if progress["success_rate"].isna().all():
             raise ValueError(f"{label}: progress.csv has no success rate (does the env report is_success?)")
+    offsets = offsets_after_students(runs, [progress for _, progress in loaded])
+    loaded = [
+        (label, progress.assign(timesteps=progress["timesteps"] + steps, wall_s=progress["wall_s"] + wall))
+        for (label, progress), (steps, wall) in zip(loaded, offsets, strict=True)
+    ]
     groups: dict[str, list[pd.DataFrame]] = {}
     for label, progress in loaded:
         groups.setdefault(label, []).append(progress)

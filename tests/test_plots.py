@@ -3,6 +3,7 @@ track figure cropped to what it draws, and a default output folder that is not t
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -163,3 +164,33 @@ def test_seeds_of_one_config_are_drawn_as_a_mean_with_a_band(tmp_path: Path) -> 
         ).to_csv(run / "progress.csv", index=False)  # fmt: skip
     svg = plots.plot_success_curves(sorted(tmp_path.glob("distill-seed*")), tmp_path / "seeds.svg").read_text()
     assert "my-distill (2 seeds: mean, min–max)" in svg
+
+
+def test_a_fine_tuning_is_drawn_after_the_student_it_started_from(tmp_path: Path) -> None:
+    # student (DAgger, 75k steps, 180 s) -> fine-tuning (PPO, 8192 steps, 8 s) -> a second fine-tuning of that one;
+    # an unrelated run keeps its own origin, and so does a fine-tuning whose student is not drawn.
+    def run(name: str, summary: dict, rows: dict) -> Path:
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "summary.json").write_text(json.dumps(summary))
+        pd.DataFrame(rows).to_csv(folder / "progress.csv", index=False)
+        return folder
+
+    dagger_rows = {"iteration": [0, 1, 2], "success_rate": [1.0, 0.4, 0.6], "samples": [25_000, 50_000, 75_000],
+                   "wall_s": [60, 120, 180]}  # fmt: skip
+    ppo_rows = {"timesteps": [2048, 8192], "mean_return": [0.0, 1.0], "success_rate": [0.5, 0.7], "level": [3, 3],
+                "wall_s": [2.0, 8.0]}  # fmt: skip
+    student = run("student", {"method": "dagger", "checkpoint": "runs/student/s.zip"}, dagger_rows)
+    tuned = run("tuned", {"checkpoint": "runs/tuned/t.zip", "init_from": "runs/student/s.zip"}, ppo_rows)
+    twice = run("twice", {"checkpoint": "runs/twice/t.zip", "init_from": "runs/tuned/t.zip"}, ppo_rows)
+    other = run("other", {"checkpoint": "runs/other/o.zip", "init_from": "runs/elsewhere/x.zip"}, ppo_rows)
+    runs = [twice, student, other, tuned]
+    progresses = [progress for _, progress in plots._load_runs(runs)]
+    assert plots.offsets_after_students(runs, progresses) == [
+        (75_000 + 8192, 180 + 8.0),
+        (0.0, 0.0),
+        (0.0, 0.0),
+        (75_000.0, 180.0),
+    ]
+    assert plots.offsets_after_students([tuned], progresses[3:]) == [(0.0, 0.0)]  # its student not given
+    assert plots.plot_success_curves(runs, tmp_path / "chain.png", dpi=60).is_file()
