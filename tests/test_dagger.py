@@ -84,9 +84,7 @@ def test_chunk_start_states_are_the_states_of_stepping_each_episode_in_order() -
     states = chunk_start_states(policy, data, chunks)
     first, _, position = chunks
     with torch.no_grad():
-        batch = data.batch(np.arange(data.size))
-        batch.pop("action")
-        features = student_features(policy, batch)
+        features = student_features(policy, data.observations(np.arange(data.size)))
         stepped = torch.zeros(data.size, policy.lstm_actor.hidden_size)  # state before each step
         hidden = torch.zeros(1, 1, policy.lstm_actor.hidden_size)
         for i in range(data.size):
@@ -138,6 +136,10 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(teacher_wanted_clearance=0.2).validate()  # below the planner's own clearance floor
     with pytest.raises(ValueError, match="apply to teacher planner-fast only"):
         DaggerConfig(teacher="planner", teacher_wanted_clearance=0.6).validate()
+    with pytest.raises(ValueError, match="crash_weight > 0 and crash_window >= 1"):
+        DaggerConfig(crash_weight=0.0).validate()
+    with pytest.raises(ValueError, match="crash_weight > 0 and crash_window >= 1"):
+        DaggerConfig(crash_window=0).validate()
 
 
 def test_fit_samples_caps_each_fit_and_numbers_load_from_yaml(tmp_path: Path) -> None:
@@ -283,7 +285,8 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
 
     from racebench.training.dagger import RESUME_DIR
 
-    config = DaggerConfig(iterations=2, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64)
+    # crash_weight: the loss weights are part of the saved dataset
+    config = DaggerConfig(iterations=2, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64, crash_weight=2.0)
     whole = distill(config, tmp_path / "whole", eval_episodes=0)
     first = DaggerConfig(**{**config.__dict__, "iterations": 1})
     distill(first, tmp_path / "parts", eval_episodes=0)
@@ -354,3 +357,54 @@ def test_labels_are_the_experts_actions_and_the_student_sees_the_public_observat
         assert not (terminated or truncated)
     env.close()
     twin.close()
+
+
+def test_the_steps_before_a_crash_weigh_crash_weight_in_the_loss() -> None:
+    """collect stores the last crash_window steps of each crashed episode with weight crash_weight, the rest with
+    1; the sequence loss is then the weighted mean of the steps' squared errors (unweighted: the plain mean)."""
+    import gymnasium as gym
+    import torch
+
+    from racebench.training.dagger import (
+        collect,
+        make_student,
+        make_teacher,
+        sequence_loss,
+        student_features,
+        student_unroll,
+    )
+
+    config = DaggerConfig(n_envs=2)
+    made = [gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast") for _ in range(2)]
+    policy = make_student(made[0], seed=0).policy  # untrained: with beta 0 it crashes within a few dozen steps
+    data = Dataset(capacity=2000, depth_size=64)
+    envs, teachers = [m.unwrapped for m in made], [make_teacher(config) for _ in made]
+    stats = collect(envs, teachers, policy, beta=0.0, steps=400, rng=np.random.default_rng(0), seeds=[0],
+                    dataset=data, crash_weight=3.0, crash_window=5)  # fmt: skip
+    for m in made:
+        m.close()
+    assert stats["episodes"] >= 2 and stats["success_rate"] == 0.0
+    bounds = np.append(np.flatnonzero(data.starts[: data.size]), data.size)
+    weights = [data.weight[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    crashed = [w for w in weights if w[-1] == 3.0]
+    assert len(crashed) == stats["episodes"]  # every finished episode crashed; the two cut at the end did not
+    for w in crashed:
+        assert np.all(w[-5:] == 3.0) and np.all(w[:-5] == 1.0)
+    assert sum(np.all(w == 1.0) for w in weights) == len(weights) - len(crashed)
+
+    first, count, _ = data.chunks(8)
+    pick = np.arange(min(6, len(first)))
+    states = torch.zeros(len(pick), policy.lstm_actor.hidden_size)
+    with torch.no_grad():
+        weighted = sequence_loss(policy, data, first[pick], count[pick], states, 8, weighted=True)
+        plain = sequence_loss(policy, data, first[pick], count[pick], states, 8)
+        errors, step_weights = [], []
+        for a, n in zip(first[pick], count[pick], strict=True):
+            steps = np.arange(a, a + n)
+            actions, _ = student_unroll(policy, student_features(policy, data.observations(steps))[:, None],
+                                        torch.zeros(1, 1, policy.lstm_actor.hidden_size))  # fmt: skip
+            errors.append(((actions[:, 0] - torch.from_numpy(data.action[steps])) ** 2).mean(-1))
+            step_weights.append(torch.from_numpy(data.weight[steps]))
+    e, w = torch.cat(errors), torch.cat(step_weights)
+    torch.testing.assert_close(weighted, (e * w).sum() / w.sum(), rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(plain, e.mean(), rtol=1e-5, atol=1e-7)

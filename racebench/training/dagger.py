@@ -93,6 +93,11 @@ class DaggerConfig:
     teacher_replan_distance: float | None = None
     student: str = "vision-ppo"  # the PPO baseline config whose network the student is (vision-ppo: the paper's)
     sequence_length: int = 32  # truncated-BPTT chunk of a recurrent student, in steps
+    # Loss weight of the last ``crash_window`` steps before each crash of a collected episode (1: unweighted).
+    # Replayed evaluation crashes (baselines/crash_visibility.py) hit obstacles in view for the last second, which
+    # the teacher, handed the controls 0.5 s before, avoids: the labels are there but few and outweighed.
+    crash_weight: float = 1.0
+    crash_window: int = 50  # steps (1 s at the 50 Hz control rate)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> DaggerConfig:
@@ -146,6 +151,7 @@ class DaggerConfig:
             (0 <= self.seed < EVAL_SEED_BASE, f"seed must be in [0, {EVAL_SEED_BASE})"),
             (self.teacher in TEACHERS, f"teacher must be one of {TEACHERS}, got {self.teacher!r}"),
             (self.sequence_length >= 1, "sequence_length must be >= 1"),
+            (self.crash_weight > 0.0 and self.crash_window >= 1, "need crash_weight > 0 and crash_window >= 1"),
             (self.gate_shift >= 0.0, "gate_shift must be >= 0 m"),
             (self.gate_shift_z is None or self.gate_shift_z >= 0.0, "gate_shift_z must be >= 0 m (or null)"),
             (0.0 < self.teacher_gate_clearance <= 0.5, "teacher_gate_clearance must be in (0, 0.5] m"),
@@ -188,7 +194,8 @@ class DaggerConfig:
 
 
 class Dataset:
-    """The DAgger aggregate: observations (depth as uint8) and the teacher's actions, a ring buffer.
+    """The DAgger aggregate: observations (depth as uint8), the teacher's actions and each step's loss weight,
+    a ring buffer.
 
     Samples are stored one episode segment at a time (:meth:`add_segment`), so consecutive indices are
     consecutive steps of one episode except where ``starts`` marks a new segment. Index 0 and the oldest
@@ -199,16 +206,22 @@ class Dataset:
         self.state = np.zeros((capacity, 17), dtype=np.float32)
         self.depth = np.zeros((capacity, 1, depth_size, depth_size), dtype=np.uint8)
         self.action = np.zeros((capacity, 4), dtype=np.float32)
+        self.weight = np.ones(capacity, dtype=np.float32)
         self.starts = np.zeros(capacity, dtype=bool)
         self.size = self.next = 0
 
-    def add_segment(self, state: np.ndarray, depth: np.ndarray, action: np.ndarray) -> None:
-        """Store consecutive steps of one episode (depth quantised to uint8); the first starts a sequence."""
+    def add_segment(
+        self, state: np.ndarray, depth: np.ndarray, action: np.ndarray, weight: np.ndarray | None = None
+    ) -> None:  # fmt: skip
+        """Store consecutive steps of one episode (depth quantised to uint8; loss weights default 1); the first
+        starts a sequence."""
         capacity = len(self.state)
         quantised = np.round(depth * 255.0).astype(np.uint8)
+        weight = np.ones(len(state), dtype=np.float32) if weight is None else weight
         for k in range(len(state)):
             i = self.next
             self.state[i], self.depth[i], self.action[i] = state[k], quantised[k], action[k]
+            self.weight[i] = weight[k]
             self.starts[i] = k == 0 or i == 0
             self.next = (i + 1) % capacity
             self.size = min(self.size + 1, capacity)
@@ -232,12 +245,19 @@ class Dataset:
         return first, count, position
 
     def batch(self, index: np.ndarray) -> dict[str, torch.Tensor]:
-        """A minibatch as the student's observation dict (depth back to [0, 1] floats) plus its labels."""
+        """A minibatch as the student's observation dict (depth back to [0, 1] floats) plus its labels
+        (``action``) and their loss weights (``weight``)."""
         return {
             "state": torch.from_numpy(self.state[index]),
             "depth": torch.from_numpy(self.depth[index].astype(np.float32) / 255.0),
             "action": torch.from_numpy(self.action[index]),
+            "weight": torch.from_numpy(self.weight[index]),
         }
+
+    def observations(self, index: np.ndarray) -> dict[str, torch.Tensor]:
+        """The student's observation dict of ``index`` alone (no labels)."""
+        batch = self.batch(index)
+        return {"state": batch["state"], "depth": batch["depth"]}
 
 
 def make_student(env: gym.Env, seed: int, student: str = "vision-ppo") -> Any:
@@ -296,6 +316,8 @@ def collect(
     rng: np.random.Generator,
     seeds: list[int],
     dataset: Dataset,
+    crash_weight: float = 1.0,
+    crash_window: int = 50,
 ) -> dict[str, float]:
     """Fly ``steps`` env steps with the beta-mixture of teacher and student; label every step with the teacher.
 
@@ -303,7 +325,8 @@ def collect(
     ``seeds`` is a shared counter of training seeds. A recurrent student's state runs through every step
     whoever acts, and is zeroed when its env starts an episode. Each episode is stored as one segment when it
     ends (an episode still flying at the end is stored as far as it got). Returns the episodes' success rate
-    and mean length.
+    and mean length. The last ``crash_window`` steps of an episode that ended in a crash are stored with loss
+    weight ``crash_weight`` (the others with 1).
     """
     caster = BatchDepthRenderer(envs[0].camera)
     recurrent = is_recurrent(policy)
@@ -325,9 +348,12 @@ def collect(
         if hidden is not None:
             hidden[:, i] = 0.0
 
-    def store(i: int) -> None:
+    def store(i: int, crashed: bool = False) -> None:
         if segments[i]:
-            dataset.add_segment(*(np.stack(column) for column in zip(*segments[i], strict=True)))
+            weight = np.ones(len(segments[i]), dtype=np.float32)
+            if crashed:
+                weight[-crash_window:] = crash_weight
+            dataset.add_segment(*(np.stack(column) for column in zip(*segments[i], strict=True)), weight)
             segments[i] = []
 
     for i in range(len(envs)):
@@ -358,7 +384,7 @@ def collect(
                 successes.append(bool(info["is_success"]))
                 lengths.append(int(lengths_now[i]))
                 lengths_now[i] = 0
-                store(i)
+                store(i, crashed=info.get("crash_reason") is not None)
                 start(i)
         obs = observe(list(range(len(envs))))
         taken += len(envs)
@@ -402,8 +428,7 @@ def chunk_start_states(policy: Any, dataset: Dataset, chunks: tuple, batch: int 
     length = int(count.max()) if len(count) else 1
     with torch.no_grad():
         features = torch.cat([
-            student_features(policy, {k: v for k, v in dataset.batch(np.arange(a, min(a + batch, dataset.size))).items()
-                                      if k != "action"})
+            student_features(policy, dataset.observations(np.arange(a, min(a + batch, dataset.size))))
             for a in range(0, dataset.size, batch)
         ])  # fmt: skip
         states = torch.zeros(len(first), policy.lstm_actor.hidden_size)
@@ -420,17 +445,22 @@ def chunk_start_states(policy: Any, dataset: Dataset, chunks: tuple, batch: int 
 
 
 def sequence_loss(
-    policy: Any, dataset: Dataset, first: np.ndarray, count: np.ndarray, states: torch.Tensor, length: int
+    policy: Any, dataset: Dataset, first: np.ndarray, count: np.ndarray, states: torch.Tensor, length: int,
+    weighted: bool = False,
 ) -> torch.Tensor:  # fmt: skip
     """Mean squared error over the real steps of the chunks ``(first, count)``, each unrolled from its start
-    state in ``states`` ``(chunks, H)``; a chunk shorter than ``length`` is padded and its padding masked."""
+    state in ``states`` ``(chunks, H)``; a chunk shorter than ``length`` is padded and its padding masked.
+    With ``weighted``, each step's error counts by its stored loss weight (a weighted mean)."""
     offsets = np.arange(length)
     steps = np.minimum(first[:, None] + offsets, first[:, None] + count[:, None] - 1)
     batch = dataset.batch(steps.T.reshape(-1))  # time-major: (length * chunks)
     target = batch.pop("action").view(length, len(first), -1)
+    weight = batch.pop("weight").view(length, len(first), 1)
     features = student_features(policy, batch).view(length, len(first), -1)
     actions, _ = student_unroll(policy, features, states[None])
     mask = torch.from_numpy(offsets[:, None] < count[None, :]).unsqueeze(-1)
+    if weighted:
+        mask = mask * weight
     return ((actions - target) ** 2 * mask).sum() / (mask.sum() * target.shape[-1])
 
 
@@ -451,10 +481,12 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
 
     A recurrent student trains on chunks of ``config.sequence_length`` steps (``batch_size // sequence_length``
     chunks a minibatch), each unrolled from the state :func:`chunk_start_states` gave it; the loss averages
-    the chunks' real steps (a short chunk's padding is masked).
+    the chunks' real steps (a short chunk's padding is masked). With ``config.crash_weight`` other than 1 the
+    loss is the mean weighted by each step's stored weight (:func:`collect`).
     """
     policy.set_training_mode(True)
     losses: list[float] = []
+    weighted = config.crash_weight != 1.0  # unweighted runs keep the plain mean (bit for bit as before)
     if is_recurrent(policy):
         length = config.sequence_length
         chunks = dataset.chunks(length)
@@ -468,7 +500,7 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
             losses = []
             for a in range(0, len(order), per_batch):
                 pick = order[a : a + per_batch]
-                error = sequence_loss(policy, dataset, first[pick], count[pick], states[pick], length)
+                error = sequence_loss(policy, dataset, first[pick], count[pick], states[pick], length, weighted)
                 optimizer.zero_grad()
                 error.backward()
                 optimizer.step()
@@ -480,8 +512,12 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
             losses = []
             for start in range(0, len(order) - config.batch_size + 1, config.batch_size):
                 batch = dataset.batch(order[start : start + config.batch_size])
-                target = batch.pop("action")
-                loss = torch.nn.functional.mse_loss(student_mean(policy, batch), target)
+                target, weight = batch.pop("action"), batch.pop("weight")
+                if weighted:
+                    error = (student_mean(policy, batch) - target) ** 2 * weight[:, None]
+                    loss = error.sum() / (weight.sum() * target.shape[-1])
+                else:
+                    loss = torch.nn.functional.mse_loss(student_mean(policy, batch), target)
                 optimizer.zero_grad()
                 loss.backward()
                 optimizer.step()
@@ -513,7 +549,7 @@ def save_resume_state(
     torch.save({"optimizer": optimizer.state_dict(), "torch_rng": torch.get_rng_state()}, partial / "optimizer.pt")
     n = dataset.size
     np.savez(partial / "dataset.npz", state=dataset.state[:n], depth=dataset.depth[:n], action=dataset.action[:n],
-             starts=dataset.starts[:n], next=np.array(dataset.next))  # fmt: skip
+             weight=dataset.weight[:n], starts=dataset.starts[:n], next=np.array(dataset.next))  # fmt: skip
     state = {"iteration": iteration, "rng": rng.bit_generator.state, "seeds": seeds, "rows": rows,
              "config": asdict(config)}  # fmt: skip
     (partial / "state.json").write_text(json.dumps(_json_safe(state), allow_nan=False))
@@ -609,6 +645,8 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
             n = len(data["state"])
             dataset.state[:n], dataset.depth[:n], dataset.action[:n] = data["state"], data["depth"], data["action"]
             dataset.starts[:n] = data["starts"]
+            if "weight" in data:  # a state saved before loss weights existed: all 1
+                dataset.weight[:n] = data["weight"]
             dataset.size, dataset.next = n, int(data["next"])
         rng.bit_generator.state = saved["rng"]
         seeds, rows = saved["seeds"], saved["rows"]
@@ -618,7 +656,8 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         beta = config.beta_decay**k
         torch.set_num_threads(1)
         tick = time.perf_counter()
-        flown = collect(envs, teachers, policy, beta, config.steps_per_iteration, rng, seeds, dataset)
+        flown = collect(envs, teachers, policy, beta, config.steps_per_iteration, rng, seeds, dataset,
+                        config.crash_weight, config.crash_window)  # fmt: skip
         torch.set_num_threads(config.update_threads)
         collected = time.perf_counter()
         loss = fit(policy, dataset, config, optimizer, rng)

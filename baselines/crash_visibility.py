@@ -1,0 +1,154 @@
+"""Did the agent see the obstacle it hit? Replay an evaluation's obstacle crashes and measure the obstacle's view.
+
+    python baselines/crash_visibility.py baselines/experiments/distill-gate-centre-per-track/Circle/eval \\
+        --agent runs/distill-gate-centre-Circle-seed0/vision-distill-gate-centre-Circle.zip
+
+A vision policy can only avoid what its camera has shown it. For every episode of the evaluation folder that
+ended on an obstacle (``crash_reason`` ``obstacle:<j>``), this flies the episode again with the agent (same id,
+same seed) and checks that the replay ends the same way (same reason, same step; a replay on another machine or
+with other code may not, and is then reported and skipped). Along the replayed flight it renders the onboard
+depth image twice per step with the analytic ray caster, once of the whole scene and once without obstacle
+``j``, and counts the pixels where obstacle ``j`` is the nearest surface. Per crash it prints when the obstacle
+was first and last in view and how many pixels it covered 0.5 s before the hit, and sums them up: a crash into
+an obstacle that was in view for a second is the policy's error; one into an obstacle never seen in the last
+second (beside or behind the camera's 90° field of view) is what the sensor allows.
+
+``--takeover 1.0 0.5`` then asks whether the label was there to learn: for each such crash and each time before
+the hit, the episode is flown once more with the DAgger teacher of ``--teacher-config`` called at every step (as
+in DAgger collection, so it has followed the flight) and handed the controls that long before the hit; it prints
+how many of those laps the teacher finishes and how many still end on the same obstacle.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pandas as pd
+import torch
+
+from racebench.agents import load_agent
+from racebench.raycast import BatchDepthRenderer
+from racebench.rollout import check_action
+from racebench.training.dagger import make_teacher
+from racebench.training.train import load_config
+
+VISIBLE_PIXELS = 1  # pixels the obstacle must cover to count as "in view"
+DEPTH_MARGIN = 0.01  # m: a pixel is the obstacle's when removing it makes the depth deeper by more than this
+
+
+def obstacle_pixels(renderer: BatchDepthRenderer, scene, j: int, positions: np.ndarray, rotations: np.ndarray):
+    """Per pose, the number of depth pixels where obstacle ``j`` of ``scene`` is the nearest surface."""
+    without = dataclasses.replace(scene, obstacles=tuple(o for i, o in enumerate(scene.obstacles) if i != j))
+    n = len(positions)
+    full = renderer.render([scene] * n, positions, rotations)
+    bare = renderer.render([without] * n, positions, rotations)
+    return ((bare - full) > DEPTH_MARGIN).sum(axis=(1, 2))
+
+
+def replay(agent, env: gym.Env, seed: int) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Fly one episode; its last info and the body poses (positions, rotations) the camera saw from."""
+    obs, _ = env.reset(seed=seed)
+    race = env.unwrapped
+    agent.reset(env=race if agent.privileged else None, seed=seed)  # as the evaluator does
+    positions, rotations, info = [], [], {}
+    while True:
+        position, _, rotation, _, _ = race.drone
+        positions.append(np.array(position, dtype=float))
+        rotations.append(np.array(rotation, dtype=float))
+        action, error = check_action(agent.act(obs))
+        if error:
+            raise ValueError(f"seed {seed}: {error}")
+        obs, _, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            return {**info, "steps": race.steps}, np.array(positions), np.array(rotations)
+
+
+def take_over(agent, teacher, env: gym.Env, seed: int, handover: int) -> dict:
+    """The agent flies until step ``handover``, then the teacher (called at every step from the start)."""
+    obs, _ = env.reset(seed=seed)
+    race = env.unwrapped
+    agent.reset(env=race if agent.privileged else None, seed=seed)
+    teacher.reset(env=race, seed=None)
+    while True:
+        label = teacher.act()
+        action = check_action(agent.act(obs))[0] if race.steps < handover else np.clip(label, -1.0, 1.0)
+        obs, _, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            return info
+
+
+def main() -> None:
+    """Print, per obstacle crash of an evaluation, when the obstacle was in view, and a summary."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("eval_dir", type=Path, help="an evaluation folder (episodes.csv) of the agent")
+    parser.add_argument("--agent", required=True, help="the agent those records are of (a .zip, or a built-in)")
+    parser.add_argument("--env", default=None, help="env id (default: the folder's only one)")
+    parser.add_argument("--trust-code", action="store_true", help="load a checkpoint outside the shipped ones")
+    parser.add_argument("--takeover", type=float, nargs="*", default=[], help="seconds before the hit (see above)")
+    parser.add_argument("--teacher-config", default="vision-distill", help="the DAgger config whose teacher takes over")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    episodes = pd.read_csv(args.eval_dir / "episodes.csv")
+    env_ids = episodes["env_id"].unique().tolist() if args.env is None else [args.env]
+    if len(env_ids) != 1:
+        parser.error(f"{args.eval_dir} holds several ids ({', '.join(env_ids)}): pick one with --env")
+    crashes = episodes[
+        (episodes["env_id"] == env_ids[0]) & episodes["crash_reason"].fillna("").str.startswith("obstacle:")
+    ]
+    agent = load_agent(args.agent, trust_code=args.trust_code)
+    env = gym.make(env_ids[0], obs_mode=agent.obs_mode)
+    race = env.unwrapped
+    renderer = BatchDepthRenderer(race.camera)
+    hz = race.control_freq
+    rows = []
+    for _, record in crashes.iterrows():
+        seed, reason, steps = int(record["seed"]), record["crash_reason"], int(record["steps"])
+        info, positions, rotations = replay(agent, env, seed)
+        if info.get("crash_reason") != reason or info["steps"] != steps:
+            print(f"seed {seed}: the replay ended {info.get('crash_reason')} at step {info['steps']}, the record "
+                  f"{reason} at step {steps}: skipped")  # fmt: skip
+            continue
+        j = int(reason.split(":")[1])
+        pixels = obstacle_pixels(renderer, race.scene, j, positions, rotations)
+        seen = np.flatnonzero(pixels >= VISIBLE_PIXELS)
+        half_second = pixels[max(0, len(pixels) - hz // 2)]
+        last_second = pixels[max(0, len(pixels) - hz) :]
+        row = {
+            "seed": seed,
+            "obstacle": j,
+            "steps": steps,
+            "first_seen_s": seen[0] / hz if len(seen) else np.nan,
+            "last_seen_before_hit_s": (len(pixels) - 1 - seen[-1]) / hz if len(seen) else np.nan,
+            "pixels_0.5s_before": int(half_second),
+            "seen_in_last_1s": bool((last_second >= VISIBLE_PIXELS).any()),
+            "max_pixels_last_1s": int(last_second.max()),
+        }
+        for seconds in args.takeover:
+            teacher = make_teacher(load_config(args.teacher_config))
+            info = take_over(agent, teacher, env, seed, max(0, steps - round(seconds * hz)))
+            row[f"teacher_{seconds:g}s_finishes"] = bool(info.get("is_success"))
+            row[f"teacher_{seconds:g}s_same_hit"] = info.get("crash_reason") == reason
+        rows.append(row)
+        print(", ".join(f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()), flush=True)
+    env.close()
+    table = pd.DataFrame(rows)
+    if table.empty:
+        print("no obstacle crash replayed")
+        return
+    in_view = int(table["seen_in_last_1s"].sum())
+    print(f"{args.eval_dir} ({env_ids[0]}): {len(table)} obstacle crashes replayed of {len(crashes)}; the obstacle "
+          f"was in view in the last second before {in_view}, never in it before {len(table) - in_view}; in view "
+          f"0.5 s before the hit: {int((table['pixels_0.5s_before'] >= VISIBLE_PIXELS).sum())}; median time from its "
+          f"last sighting to the hit {table['last_seen_before_hit_s'].median():.2f} s")  # fmt: skip
+    for seconds in args.takeover:
+        print(f"the teacher ({args.teacher_config}) handed the controls {seconds:g} s before the hit: finishes "
+              f"{int(table[f'teacher_{seconds:g}s_finishes'].sum())} of {len(table)}, hits the same obstacle in "
+              f"{int(table[f'teacher_{seconds:g}s_same_hit'].sum())}")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
