@@ -186,3 +186,36 @@ def test_seeds_report_takes_the_mean_and_spread_of_validated_records(tmp_path, m
     monkeypatch.setattr("sys.argv", ["seeds_report", str(tmp_path)])
     with pytest.raises(SystemExit, match="^seeds_report: no evaluation records at"):
         module.main()
+
+
+def test_crash_visibility_counts_the_hit_obstacles_pixels_and_replays_crashes(tmp_path, monkeypatch, capsys) -> None:
+    import gymnasium as gym
+
+    from racebench.evaluation import Evaluator
+    from racebench.raycast import BatchDepthRenderer
+
+    spec = importlib.util.spec_from_file_location("crash_visibility", ROOT / "baselines" / "crash_visibility.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    env = gym.make("RaceObs-S-v0")
+    env.reset(seed=1_000_000)
+    race = env.unwrapped
+    scene, renderer = race.scene, BatchDepthRenderer(race.camera)
+    target = scene.obstacles[0].position
+    towards = np.arctan2(*(target[:2] - (target[:2] + [3.0, 0.0]))[::-1])  # yaw from 3 m in +x, facing it
+    poses = []
+    for yaw in (towards, towards + np.pi):  # facing the obstacle, then facing away from it
+        c, s = np.cos(yaw), np.sin(yaw)
+        poses.append(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
+    at = np.array([target[0] + 3.0, target[1], target[2]])
+    pixels = module.obstacle_pixels(renderer, scene, 0, np.stack([at, at]), np.stack(poses))
+    assert pixels[0] > 10 and pixels[1] == 0  # an obstacle 3 m ahead covers pixels; behind the camera, none
+    env.close()
+
+    # `follow` flies the gate axes blind to obstacles: two of these four S scenes end on one (results/follow).
+    Evaluator("follow", ["RaceObs-S-v0"], episodes=4, out_dir=tmp_path / "eval").run(progress=False)
+    monkeypatch.setattr("sys.argv", ["crash_visibility", str(tmp_path / "eval"), "--agent", "follow"])
+    module.main()
+    out = capsys.readouterr().out
+    assert re.search(r"RaceObs-S-v0\): 2 obstacle crashes replayed of 2; the obstacle was in view in the last second "
+                     r"before 2", out)  # fmt: skip
