@@ -16,7 +16,8 @@ second (beside or behind the camera's 90° field of view) is what the sensor all
 ``--takeover 1.0 0.5`` then asks whether the label was there to learn: for each such crash and each time before
 the hit, the episode is flown once more with the DAgger teacher of ``--teacher-config`` called at every step (as
 in DAgger collection, so it has followed the flight) and handed the controls that long before the hit; it prints
-how many of those laps the teacher finishes and how many still end on the same obstacle.
+how many of those laps the teacher finishes and how many still end on the same obstacle. ``--kind gate`` does the
+same for gate strikes (``gate:<i>``; the pixels are gate ``i``'s frame).
 """
 
 from __future__ import annotations
@@ -40,9 +41,13 @@ VISIBLE_PIXELS = 1  # pixels the obstacle must cover to count as "in view"
 DEPTH_MARGIN = 0.01  # m: a pixel is the obstacle's when removing it makes the depth deeper by more than this
 
 
-def obstacle_pixels(renderer: BatchDepthRenderer, scene, j: int, positions: np.ndarray, rotations: np.ndarray):
-    """Per pose, the number of depth pixels where obstacle ``j`` of ``scene`` is the nearest surface."""
-    without = dataclasses.replace(scene, obstacles=tuple(o for i, o in enumerate(scene.obstacles) if i != j))
+def obstacle_pixels(
+    renderer: BatchDepthRenderer, scene, j: int, positions: np.ndarray, rotations: np.ndarray, kind: str = "obstacle"
+) -> np.ndarray:  # fmt: skip
+    """Per pose, the number of depth pixels where obstacle ``j`` of ``scene`` (``kind="gate"``: gate ``j``'s frame)
+    is the nearest surface."""
+    field = "obstacles" if kind == "obstacle" else "gates"
+    without = dataclasses.replace(scene, **{field: tuple(o for i, o in enumerate(getattr(scene, field)) if i != j)})
     n = len(positions)
     full = renderer.render([scene] * n, positions, rotations)
     bare = renderer.render([without] * n, positions, rotations)
@@ -88,6 +93,7 @@ def main() -> None:
     parser.add_argument("--agent", required=True, help="the agent those records are of (a .zip, or a built-in)")
     parser.add_argument("--env", default=None, help="env id (default: the folder's only one)")
     parser.add_argument("--trust-code", action="store_true", help="load a checkpoint outside the shipped ones")
+    parser.add_argument("--kind", default="obstacle", choices=["obstacle", "gate"], help="the crashes to replay")
     parser.add_argument("--takeover", type=float, nargs="*", default=[], help="seconds before the hit (see above)")
     parser.add_argument("--teacher-config", default="vision-distill", help="the DAgger config whose teacher takes over")
     args = parser.parse_args()
@@ -97,7 +103,7 @@ def main() -> None:
     if len(env_ids) != 1:
         parser.error(f"{args.eval_dir} holds several ids ({', '.join(env_ids)}): pick one with --env")
     crashes = episodes[
-        (episodes["env_id"] == env_ids[0]) & episodes["crash_reason"].fillna("").str.startswith("obstacle:")
+        (episodes["env_id"] == env_ids[0]) & episodes["crash_reason"].fillna("").str.startswith(f"{args.kind}:")
     ]
     agent = load_agent(args.agent, trust_code=args.trust_code)
     env = gym.make(env_ids[0], obs_mode=agent.obs_mode)
@@ -113,13 +119,13 @@ def main() -> None:
                   f"{reason} at step {steps}: skipped")  # fmt: skip
             continue
         j = int(reason.split(":")[1])
-        pixels = obstacle_pixels(renderer, race.scene, j, positions, rotations)
+        pixels = obstacle_pixels(renderer, race.scene, j, positions, rotations, args.kind)
         seen = np.flatnonzero(pixels >= VISIBLE_PIXELS)
         half_second = pixels[max(0, len(pixels) - hz // 2)]
         last_second = pixels[max(0, len(pixels) - hz) :]
         row = {
             "seed": seed,
-            "obstacle": j,
+            args.kind: j,
             "steps": steps,
             "first_seen_s": seen[0] / hz if len(seen) else np.nan,
             "last_seen_before_hit_s": (len(pixels) - 1 - seen[-1]) / hz if len(seen) else np.nan,
@@ -137,16 +143,17 @@ def main() -> None:
     env.close()
     table = pd.DataFrame(rows)
     if table.empty:
-        print("no obstacle crash replayed")
+        print(f"no {args.kind} crash replayed")
         return
     in_view = int(table["seen_in_last_1s"].sum())
-    print(f"{args.eval_dir} ({env_ids[0]}): {len(table)} obstacle crashes replayed of {len(crashes)}; the obstacle "
+    kind = args.kind
+    print(f"{args.eval_dir} ({env_ids[0]}): {len(table)} {kind} crashes replayed of {len(crashes)}; the {kind} "
           f"was in view in the last second before {in_view}, never in it before {len(table) - in_view}; in view "
           f"0.5 s before the hit: {int((table['pixels_0.5s_before'] >= VISIBLE_PIXELS).sum())}; median time from its "
           f"last sighting to the hit {table['last_seen_before_hit_s'].median():.2f} s")  # fmt: skip
     for seconds in args.takeover:
         print(f"the teacher ({args.teacher_config}) handed the controls {seconds:g} s before the hit: finishes "
-              f"{int(table[f'teacher_{seconds:g}s_finishes'].sum())} of {len(table)}, hits the same obstacle in "
+              f"{int(table[f'teacher_{seconds:g}s_finishes'].sum())} of {len(table)}, hits the same {args.kind} in "
               f"{int(table[f'teacher_{seconds:g}s_same_hit'].sum())}")  # fmt: skip
 
 
