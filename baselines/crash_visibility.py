@@ -5,8 +5,9 @@
 
 A vision policy can only avoid what its camera has shown it. For every episode of the evaluation folder that
 ended on an obstacle (``crash_reason`` ``obstacle:<j>``), this flies the episode again with the agent (same id,
-same seed) and checks that the replay ends the same way (same reason, same step; a replay on another machine or
-with other code may not, and is then reported and skipped). Along the replayed flight it renders the onboard
+same seed, the same renderer, a batch agent at the evaluation's lockstep width) and checks that the replay ends
+the same way (same reason, same step; a replay on another machine or with other code may not, and is then
+reported and skipped). Along the replayed flight it renders the onboard
 depth image twice per step with the analytic ray caster, once of the whole scene and once without obstacle
 ``j``, and counts the pixels where obstacle ``j`` is the nearest surface. Per crash it prints when the obstacle
 was first and last in view and how many pixels it covered 0.5 s before the hit, and sums them up: a crash into
@@ -32,8 +33,9 @@ import pandas as pd
 import torch
 
 from racebench.agents import load_agent
+from racebench.evaluation import DEFAULT_BATCH
 from racebench.raycast import BatchDepthRenderer
-from racebench.rollout import check_action
+from racebench.rollout import BatchAgent, check_action
 from racebench.training.dagger import make_teacher
 from racebench.training.train import load_config
 
@@ -54,33 +56,57 @@ def obstacle_pixels(
     return ((bare - full) > DEPTH_MARGIN).sum(axis=(1, 2))
 
 
-def replay(agent, env: gym.Env, seed: int) -> tuple[dict, np.ndarray, np.ndarray]:
+class Pilot:
+    """Flies an agent as the evaluator did: a batch agent through ``act_batch`` at the evaluation's lockstep
+    width (every call passes ``width`` observations, as ``run_lockstep`` does; the network's last bits depend on
+    the batch size), any other agent through ``act``."""
+
+    def __init__(self, agent, width: int) -> None:
+        self.agent, self.width = agent, width
+        self.batched = width > 1 and isinstance(agent, BatchAgent)
+
+    def reset(self, env, seed: int) -> None:
+        """A new episode (the evaluator's reset: the env only for a privileged agent)."""
+        if self.batched:
+            self.agent.start(self.width)
+            self.agent.reset_slot(0)
+        else:
+            self.agent.reset(env=env if self.agent.privileged else None, seed=seed)
+
+    def act(self, obs) -> np.ndarray:
+        """The agent's action for ``obs`` (checked as the evaluator checks it)."""
+        raw = self.agent.act_batch([obs] * self.width)[0] if self.batched else self.agent.act(obs)
+        action, error = check_action(raw)
+        if error:
+            raise ValueError(error)
+        return action
+
+
+def replay(pilot: Pilot, env: gym.Env, seed: int) -> tuple[dict, np.ndarray, np.ndarray]:
     """Fly one episode; its last info and the body poses (positions, rotations) the camera saw from."""
     obs, _ = env.reset(seed=seed)
     race = env.unwrapped
-    agent.reset(env=race if agent.privileged else None, seed=seed)  # as the evaluator does
+    pilot.reset(race, seed)
     positions, rotations, info = [], [], {}
     while True:
         position, _, rotation, _, _ = race.drone
         positions.append(np.array(position, dtype=float))
         rotations.append(np.array(rotation, dtype=float))
-        action, error = check_action(agent.act(obs))
-        if error:
-            raise ValueError(f"seed {seed}: {error}")
+        action = pilot.act(obs)
         obs, _, terminated, truncated, info = env.step(action)
         if terminated or truncated:
             return {**info, "steps": race.steps}, np.array(positions), np.array(rotations)
 
 
-def take_over(agent, teacher, env: gym.Env, seed: int, handover: int) -> dict:
+def take_over(pilot: Pilot, teacher, env: gym.Env, seed: int, handover: int) -> dict:
     """The agent flies until step ``handover``, then the teacher (called at every step from the start)."""
     obs, _ = env.reset(seed=seed)
     race = env.unwrapped
-    agent.reset(env=race if agent.privileged else None, seed=seed)
+    pilot.reset(race, seed)
     teacher.reset(env=race, seed=None)
     while True:
         label = teacher.act()
-        action = check_action(agent.act(obs))[0] if race.steps < handover else np.clip(label, -1.0, 1.0)
+        action = pilot.act(obs) if race.steps < handover else np.clip(label, -1.0, 1.0)
         obs, _, terminated, truncated, info = env.step(action)
         if terminated or truncated:
             return info
@@ -93,6 +119,8 @@ def main() -> None:
     parser.add_argument("--agent", required=True, help="the agent those records are of (a .zip, or a built-in)")
     parser.add_argument("--env", default=None, help="env id (default: the folder's only one)")
     parser.add_argument("--trust-code", action="store_true", help="load a checkpoint outside the shipped ones")
+    parser.add_argument("--width", type=int, default=None,
+                        help="the evaluation's lockstep width (default: as racebench evaluate chose it)")  # fmt: skip
     parser.add_argument("--kind", default="obstacle", choices=["obstacle", "gate"], help="the crashes to replay")
     parser.add_argument("--takeover", type=float, nargs="*", default=[], help="seconds before the hit (see above)")
     parser.add_argument("--teacher-config", default="vision-distill", help="the DAgger config whose teacher takes over")
@@ -106,14 +134,19 @@ def main() -> None:
         (episodes["env_id"] == env_ids[0]) & episodes["crash_reason"].fillna("").str.startswith(f"{args.kind}:")
     ]
     agent = load_agent(args.agent, trust_code=args.trust_code)
-    env = gym.make(env_ids[0], obs_mode=agent.obs_mode)
+    # racebench evaluate's width: --batch (64) or the evaluation's size when smaller (all its ids and seeds)
+    pilot = Pilot(agent, args.width or max(1, min(DEFAULT_BATCH, len(episodes))))
+    renderers = crashes["renderer"].unique().tolist() if len(crashes) else ["pybullet"]
+    if len(renderers) != 1:
+        parser.error(f"{args.eval_dir}: crashes flown with several renderers ({', '.join(renderers)})")
+    env = gym.make(env_ids[0], obs_mode=agent.obs_mode, renderer=renderers[0])
     race = env.unwrapped
     renderer = BatchDepthRenderer(race.camera)
     hz = race.control_freq
     rows = []
     for _, record in crashes.iterrows():
         seed, reason, steps = int(record["seed"]), record["crash_reason"], int(record["steps"])
-        info, positions, rotations = replay(agent, env, seed)
+        info, positions, rotations = replay(pilot, env, seed)
         if info.get("crash_reason") != reason or info["steps"] != steps:
             print(f"seed {seed}: the replay ended {info.get('crash_reason')} at step {info['steps']}, the record "
                   f"{reason} at step {steps}: skipped")  # fmt: skip
@@ -135,7 +168,7 @@ def main() -> None:
         }
         for seconds in args.takeover:
             teacher = make_teacher(load_config(args.teacher_config))
-            info = take_over(agent, teacher, env, seed, max(0, steps - round(seconds * hz)))
+            info = take_over(pilot, teacher, env, seed, max(0, steps - round(seconds * hz)))
             row[f"teacher_{seconds:g}s_finishes"] = bool(info.get("is_success"))
             row[f"teacher_{seconds:g}s_same_hit"] = info.get("crash_reason") == reason
         rows.append(row)
