@@ -6,6 +6,7 @@ shift, the 3D track plot with flown trajectories (the paper's Fig. 4), training 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -343,7 +344,8 @@ def _summary_path(run: str | Path, key: str) -> str | None:
     if not summary.is_file():
         return None
     value = json.loads(summary.read_text()).get(key)
-    return Path(value).as_posix() if isinstance(value, str) else None
+    # runs record paths relative to where they were started; compared from here, as absolute normalised paths
+    return os.path.normpath(os.path.abspath(value)) if isinstance(value, str) else None
 
 
 def offsets_after_students(runs: list[str | Path], progresses: list[pd.DataFrame]) -> list[tuple[float, float]]:

@@ -271,9 +271,10 @@ def test_a_tiny_distillation_run(tmp_path: Path) -> None:
 
 
 def test_a_feed_forward_student(tmp_path: Path) -> None:
-    """--student vision-no-gru: the feed-forward network, trained on shuffled single steps."""
+    """--student vision-no-gru: the feed-forward network, trained on shuffled single steps (here with the
+    crash-weighted loss)."""
     config = DaggerConfig(iterations=1, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=32,
-                          student="vision-no-gru")  # fmt: skip
+                          student="vision-no-gru", crash_weight=2.0)  # fmt: skip
     summary = distill(config, tmp_path, eval_episodes=0)
     assert np.isfinite(summary["last"]["loss"]) and summary["student"] == "vision-no-gru"
     assert not SB3Agent(summary["checkpoint"], trust_code=True).recurrent
@@ -310,6 +311,16 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
     assert load_resume_state(tmp_path / "parts", config) is not None
     with pytest.raises(ValueError, match="teacher_integral_gain=4.0, not 0.0"):
         load_resume_state(tmp_path / "parts", DaggerConfig(**{**config.__dict__, "teacher_integral_gain": 0.0}))
+
+    # The loss weights are part of the saved aggregate: weights in the saved state survive a resumption.
+    saved = tmp_path / "parts" / RESUME_DIR / "dataset.npz"
+    with np.load(saved) as data:
+        arrays = dict(data)
+    arrays["weight"][:10] = 2.0
+    np.savez(saved, **arrays)
+    distill(DaggerConfig(**{**config.__dict__, "iterations": 3}), tmp_path / "parts", eval_episodes=0, resume=True)
+    with np.load(saved) as data:
+        assert np.all(data["weight"][:10] == 2.0) and len(data["weight"]) == 3 * 128
 
 
 def test_a_kill_inside_the_state_swap_resumes_from_the_state_it_left(tmp_path: Path) -> None:
@@ -381,10 +392,16 @@ def test_the_steps_before_a_crash_weigh_crash_weight_in_the_loss() -> None:
     envs, teachers = [m.unwrapped for m in made], [make_teacher(config) for _ in made]
     stats = collect(envs, teachers, policy, beta=0.0, steps=400, rng=np.random.default_rng(0), seeds=[0],
                     dataset=data, crash_weight=3.0, crash_window=5)  # fmt: skip
+    assert stats["episodes"] >= 2 and stats["success_rate"] == 0.0
+    crashes_end = data.size
+    # The teacher flying: finished laps end the episode too, and are not weighted.
+    flown = collect(envs, teachers, policy, beta=1.0, steps=500, rng=np.random.default_rng(0), seeds=[100],
+                    dataset=data, crash_weight=3.0, crash_window=5)  # fmt: skip
     for m in made:
         m.close()
-    assert stats["episodes"] >= 2 and stats["success_rate"] == 0.0
-    bounds = np.append(np.flatnonzero(data.starts[: data.size]), data.size)
+    assert flown["episodes"] >= 1 and flown["success_rate"] == 1.0
+    assert np.all(data.weight[crashes_end : data.size] == 1.0)
+    bounds = np.append(np.flatnonzero(data.starts[:crashes_end]), crashes_end)
     weights = [data.weight[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
     crashed = [w for w in weights if w[-1] == 3.0]
     assert len(crashed) == stats["episodes"]  # every finished episode crashed; the two cut at the end did not
@@ -393,7 +410,8 @@ def test_the_steps_before_a_crash_weigh_crash_weight_in_the_loss() -> None:
     assert sum(np.all(w == 1.0) for w in weights) == len(weights) - len(crashed)
 
     first, count, _ = data.chunks(8)
-    pick = np.arange(min(6, len(first)))
+    heavy = [k for k, (a, n) in enumerate(zip(first, count, strict=True)) if data.weight[a : a + n].max() > 1.0]
+    pick = np.array(heavy[:3] + [k for k in range(len(first)) if k not in heavy][:3])  # weighted and unweighted
     states = torch.zeros(len(pick), policy.lstm_actor.hidden_size)
     with torch.no_grad():
         weighted = sequence_loss(policy, data, first[pick], count[pick], states, 8, weighted=True)
@@ -406,5 +424,6 @@ def test_the_steps_before_a_crash_weigh_crash_weight_in_the_loss() -> None:
             errors.append(((actions[:, 0] - torch.from_numpy(data.action[steps])) ** 2).mean(-1))
             step_weights.append(torch.from_numpy(data.weight[steps]))
     e, w = torch.cat(errors), torch.cat(step_weights)
+    assert w.max() == 3.0 and w.min() == 1.0
     torch.testing.assert_close(weighted, (e * w).sum() / w.sum(), rtol=1e-5, atol=1e-7)
     torch.testing.assert_close(plain, e.mean(), rtol=1e-5, atol=1e-7)

@@ -93,7 +93,8 @@ class DaggerConfig:
     teacher_replan_distance: float | None = None
     student: str = "vision-ppo"  # the PPO baseline config whose network the student is (vision-ppo: the paper's)
     sequence_length: int = 32  # truncated-BPTT chunk of a recurrent student, in steps
-    # Loss weight of the last ``crash_window`` steps before each crash of a collected episode (1: unweighted).
+    # Loss weight of the last ``crash_window`` steps before each crash (obstacle, gate, ground or out of bounds) of a
+    # collected episode (1: unweighted).
     # Replayed evaluation crashes (baselines/crash_visibility.py) hit obstacles in view for the last second, which
     # the teacher, handed the controls 0.5 s before, avoids: the labels are there but few and outweighed.
     crash_weight: float = 1.0
