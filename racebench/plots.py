@@ -309,8 +309,8 @@ def _load_runs(runs: list[str | Path]) -> list[tuple[str, pd.DataFrame]]:
         if config.is_file():
             label = yaml.safe_load(config.read_text()).get("name") or label
         elif summary.is_file():
-            named = json.loads(summary.read_text()).get("config", {})
-            label = named.get("name", label) if isinstance(named, dict) else label
+            named = json.loads(summary.read_text()).get("config", {})  # a DAgger run's dict, a PPO run's name
+            label = named.get("name", label) if isinstance(named, dict) else named if isinstance(named, str) else label
         loaded.append((label, read_progress(csv_path)))
     return loaded
 

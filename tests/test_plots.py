@@ -181,11 +181,14 @@ def test_a_fine_tuning_is_drawn_after_the_student_it_started_from(tmp_path: Path
     ppo_rows = {"timesteps": [2048, 8192], "mean_return": [0.0, 1.0], "success_rate": [0.5, 0.7], "level": [3, 3],
                 "wall_s": [2.0, 8.0]}  # fmt: skip
     student = run("student", {"method": "dagger", "checkpoint": "runs/student/s.zip"}, dagger_rows)
-    tuned = run("tuned", {"checkpoint": "runs/tuned/t.zip", "init_from": "runs/student/s.zip"}, ppo_rows)
+    tuned = run("tuned", {"config": "my-tuning", "checkpoint": "runs/tuned/t.zip", "init_from": "runs/student/s.zip"},
+                ppo_rows)  # fmt: skip
     twice = run("twice", {"checkpoint": "runs/twice/t.zip", "init_from": "runs/tuned/t.zip"}, ppo_rows)
     other = run("other", {"checkpoint": "runs/other/o.zip", "init_from": "runs/elsewhere/x.zip"}, ppo_rows)
     runs = [twice, student, other, tuned]
-    progresses = [progress for _, progress in plots._load_runs(runs)]
+    loaded = plots._load_runs(runs)
+    assert [label for label, _ in loaded] == ["twice", "student", "other", "my-tuning"]  # a PPO summary: its config
+    progresses = [progress for _, progress in loaded]
     assert plots.offsets_after_students(runs, progresses) == [
         (75_000 + 8192, 180 + 8.0),
         (0.0, 0.0),
