@@ -76,6 +76,10 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "b15d357773f7cb5a045eb4c51cef24a1d3ed567227f5b0e2d245b5e716feaf4e": "vision-distill-J/vision-distill-J.zip",
     "75721e4a6e948352f99586a674d9ab24afb3fb07bc62ddaf6949b783c68d8d29": "vision-dagger-J/vision-dagger-J.zip",
     "0cd4efa09868e16ae77ebeb21d6b954b0cb6f81a1db5ad208b059c88020ad403": "vision-dagger-Circle/vision-dagger-Circle.zip",
+    "8de98c41bc0adfe5ddccb7b36c909abef4d2058e2246a77d73aefca1da8871ad": (
+        "vision-distill-ppo-Circle/vision-distill-ppo-Circle.zip"
+    ),
+    "ef647d0ba4b7b11827421990ce8e6c6492ea4975480d834cebdea379001d5869": "vision-distill-ppo-J/vision-distill-ppo-J.zip",
 }
 
 
