@@ -95,8 +95,9 @@ class DaggerConfig:
     sequence_length: int = 32  # truncated-BPTT chunk of a recurrent student, in steps
     # Loss weight of the last ``crash_window`` steps before each crash (obstacle, gate, ground or out of bounds) of a
     # collected episode (1: unweighted).
-    # Replayed evaluation crashes (baselines/crash_visibility.py) hit obstacles in view for the last second, which
-    # the teacher, handed the controls 0.5 s before, avoids: the labels are there but few and outweighed.
+    # Why: replayed evaluation crashes (baselines/crash_visibility.py) hit obstacles in view 0.5 s before, which the
+    # teacher, handed the controls then, avoids, so the labels exist but are few. Measured at 4 it did not help (worse
+    # on Circle; baselines/experiments/distill-crash-weight/), hence off by default.
     crash_weight: float = 1.0
     crash_window: int = 50  # steps (1 s at the 50 Hz control rate)
 
@@ -249,16 +250,17 @@ class Dataset:
         """A minibatch as the student's observation dict (depth back to [0, 1] floats) plus its labels
         (``action``) and their loss weights (``weight``)."""
         return {
-            "state": torch.from_numpy(self.state[index]),
-            "depth": torch.from_numpy(self.depth[index].astype(np.float32) / 255.0),
+            **self.observations(index),
             "action": torch.from_numpy(self.action[index]),
             "weight": torch.from_numpy(self.weight[index]),
         }
 
     def observations(self, index: np.ndarray) -> dict[str, torch.Tensor]:
         """The student's observation dict of ``index`` alone (no labels)."""
-        batch = self.batch(index)
-        return {"state": batch["state"], "depth": batch["depth"]}
+        return {
+            "state": torch.from_numpy(self.state[index]),
+            "depth": torch.from_numpy(self.depth[index].astype(np.float32) / 255.0),
+        }
 
 
 def make_student(env: gym.Env, seed: int, student: str = "vision-ppo") -> Any:
