@@ -219,3 +219,35 @@ def test_crash_visibility_counts_the_hit_obstacles_pixels_and_replays_crashes(tm
     out = capsys.readouterr().out
     assert re.search(r"RaceObs-S-v0\): 2 obstacle crashes replayed of 2; the obstacle was in view in the last second "
                      r"before 2", out)  # fmt: skip
+
+
+def test_extra_fit_continues_a_runs_fit_from_its_saved_state(tmp_path, monkeypatch) -> None:
+    import hashlib
+
+    from racebench.agents import SB3Agent
+    from racebench.training.dagger import DaggerConfig, distill
+
+    spec = importlib.util.spec_from_file_location("extra_fit", ROOT / "baselines" / "extra_fit.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    run = tmp_path / "run"
+    config = DaggerConfig(name="tiny", iterations=1, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64)
+    distill(config, run, eval_episodes=0)
+    before = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(run.rglob("*")) if p.is_file()}
+
+    log = module.extra_fit(run, tmp_path / "a", epochs=2, seed=3)
+    assert log["pass"].tolist() == [0, 1]
+    assert log["learning_rate"].tolist() == [config.learning_rate, config.learning_rate / 2]  # linear to 0
+    assert np.isfinite(log["loss"]).all()
+    assert pd.read_csv(tmp_path / "a" / "extra_fit.csv")["loss"].tolist() == log["loss"].tolist()
+    assert before == {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(run.rglob("*")) if p.is_file()}
+    fitted = SB3Agent(str(tmp_path / "a" / "tiny-S.zip"), trust_code=True).model.policy.state_dict()
+    original = SB3Agent(str(run / "tiny-S.zip"), trust_code=True).model.policy.state_dict()
+    assert any(not torch.equal(fitted[k], original[k]) for k in original)  # the passes moved the student
+    # The same seed, the same passes (one machine); the run's settings come from its saved state.
+    again = module.extra_fit(run, tmp_path / "b", epochs=2, seed=3)
+    assert again["loss"].tolist() == log["loss"].tolist()
+
+    monkeypatch.setattr("sys.argv", ["extra_fit", str(tmp_path / "nothing"), "--epochs", "1", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="holds no saved DAgger state"):
+        module.main()

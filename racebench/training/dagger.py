@@ -606,6 +606,26 @@ def load_resume_state(out: Path, config: DaggerConfig) -> dict[str, Any] | None:
     return {**state, "folder": str(folder)}
 
 
+def restore_state(
+    saved: dict[str, Any], student: Any, optimizer: Any, dataset: Dataset, rng: np.random.Generator
+) -> None:  # fmt: skip
+    """Load a state :func:`load_resume_state` returned into the student (SB3 model), its optimizer, the aggregate,
+    the numpy generator and torch's random state, as the run left them after its last finished iteration."""
+    folder = Path(saved["folder"])
+    student.policy.load_state_dict(type(student).load(folder / "student.zip", device="cpu").policy.state_dict())
+    extra = torch.load(folder / "optimizer.pt", weights_only=False)  # written by save_resume_state: trusted
+    optimizer.load_state_dict(extra["optimizer"])
+    torch.set_rng_state(extra["torch_rng"])
+    with np.load(folder / "dataset.npz") as data:
+        n = len(data["state"])
+        dataset.state[:n], dataset.depth[:n], dataset.action[:n] = data["state"], data["depth"], data["action"]
+        dataset.starts[:n] = data["starts"]
+        if "weight" in data:  # a state saved before loss weights existed: all 1
+            dataset.weight[:n] = data["weight"]
+        dataset.size, dataset.next = n, int(data["next"])
+    rng.bit_generator.state = saved["rng"]
+
+
 def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resume: bool = False) -> dict[str, Any]:
     """Run DAgger (see the module docstring); write the student checkpoint, ``progress.csv`` and ``summary.json``.
 
@@ -639,19 +659,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     rows: list[dict[str, Any]] = []
     first, offset = 0, 0.0
     if saved is not None:
-        folder = Path(saved["folder"])
-        policy.load_state_dict(type(policy_model).load(folder / "student.zip", device="cpu").policy.state_dict())
-        extra = torch.load(folder / "optimizer.pt", weights_only=False)  # written by this function: trusted
-        optimizer.load_state_dict(extra["optimizer"])
-        torch.set_rng_state(extra["torch_rng"])
-        with np.load(folder / "dataset.npz") as data:
-            n = len(data["state"])
-            dataset.state[:n], dataset.depth[:n], dataset.action[:n] = data["state"], data["depth"], data["action"]
-            dataset.starts[:n] = data["starts"]
-            if "weight" in data:  # a state saved before loss weights existed: all 1
-                dataset.weight[:n] = data["weight"]
-            dataset.size, dataset.next = n, int(data["next"])
-        rng.bit_generator.state = saved["rng"]
+        restore_state(saved, policy_model, optimizer, dataset, rng)
         seeds, rows = saved["seeds"], saved["rows"]
         first, offset = saved["iteration"] + 1, float(rows[-1]["wall_s"]) if rows else 0.0
     started = time.perf_counter() - offset  # wall clock over the resumed parts
