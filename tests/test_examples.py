@@ -223,31 +223,54 @@ def test_crash_visibility_counts_the_hit_obstacles_pixels_and_replays_crashes(tm
 
 def test_extra_fit_continues_a_runs_fit_from_its_saved_state(tmp_path, monkeypatch) -> None:
     import hashlib
+    import json
 
     from racebench.agents import SB3Agent
+    from racebench.training import dagger
     from racebench.training.dagger import DaggerConfig, distill
 
     spec = importlib.util.spec_from_file_location("extra_fit", ROOT / "baselines" / "extra_fit.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     run = tmp_path / "run"
-    config = DaggerConfig(name="tiny", iterations=1, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64)
+    config = DaggerConfig(name="tiny", iterations=1, steps_per_iteration=128, n_envs=4, epochs=2, batch_size=64,
+                          learning_rate=1e-3)  # fmt: skip
     distill(config, run, eval_episodes=0)
     before = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(run.rglob("*")) if p.is_file()}
+    original = SB3Agent(str(run / "tiny-S.zip"), trust_code=True).model.policy.state_dict()
 
+    calls = []
+
+    def checked_fit(policy, dataset, config, optimizer, rng):  # the run's fit, one pass a call, from its student
+        if not calls:
+            assert all(torch.equal(policy.state_dict()[k], original[k]) for k in original)
+            assert dataset.size == 128
+        calls.append((config.epochs, optimizer.param_groups[0]["lr"]))
+        return dagger.fit(policy, dataset, config, optimizer, rng)
+
+    monkeypatch.setattr(module, "fit", checked_fit)
     log = module.extra_fit(run, tmp_path / "a", epochs=2, seed=3)
-    assert log["pass"].tolist() == [0, 1]
-    assert log["learning_rate"].tolist() == [config.learning_rate, config.learning_rate / 2]  # linear to 0
+    assert calls == [(1, 1e-3), (1, 5e-4)]  # the run's learning rate, falling linearly; one pass each
+    assert log["pass"].tolist() == [0, 1] and log["learning_rate"].tolist() == [1e-3, 5e-4]
     assert np.isfinite(log["loss"]).all()
     assert pd.read_csv(tmp_path / "a" / "extra_fit.csv")["loss"].tolist() == log["loss"].tolist()
+    assert json.loads((tmp_path / "a" / "extra_fit.json").read_text())["seed"] == 3
     assert before == {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(run.rglob("*")) if p.is_file()}
     fitted = SB3Agent(str(tmp_path / "a" / "tiny-S.zip"), trust_code=True).model.policy.state_dict()
-    original = SB3Agent(str(run / "tiny-S.zip"), trust_code=True).model.policy.state_dict()
     assert any(not torch.equal(fitted[k], original[k]) for k in original)  # the passes moved the student
-    # The same seed, the same passes (one machine); the run's settings come from its saved state.
+    # The same seed, the same passes (one machine).
     again = module.extra_fit(run, tmp_path / "b", epochs=2, seed=3)
     assert again["loss"].tolist() == log["loss"].tolist()
 
-    monkeypatch.setattr("sys.argv", ["extra_fit", str(tmp_path / "nothing"), "--epochs", "1", "--out", str(tmp_path)])
-    with pytest.raises(SystemExit, match="holds no saved DAgger state"):
+    for argv, message in (
+        ([str(tmp_path / "nothing"), "--epochs", "1", "--out", str(tmp_path / "c")], "holds no saved DAgger state"),
+        ([str(run), "--epochs", "0", "--out", str(tmp_path / "c")], "must be at least 1"),
+        ([str(run), "--epochs", "1", "--out", str(run / "x")], "inside the run"),
+    ):  # fmt: skip
+        monkeypatch.setattr("sys.argv", ["extra_fit", *argv])
+        with pytest.raises(SystemExit, match=message):
+            module.main()
+    (run / "resume" / "state.json").write_text("{not json")
+    monkeypatch.setattr("sys.argv", ["extra_fit", str(run), "--epochs", "1", "--out", str(tmp_path / "c")])
+    with pytest.raises(SystemExit, match="is not a DAgger state"):
         module.main()
