@@ -4,6 +4,8 @@
         > baselines/experiments/planner_fast_accel.txt  # v2's friction-circle profile
     python baselines/planner_fast_sweep.py --seeds 60 --set thrust_accel=none,15 braking_jerk=none,60 \
         > baselines/experiments/planner_fast_profile.txt
+    python baselines/planner_fast_sweep.py --seeds 100 --gate-shift 0.3 --set gate_clearance=0.5 \
+        wanted_clearance=0.6 integral_gain=0,4 > baselines/experiments/teacher_training_scenes.txt  # DAgger's teacher
 
 Prints, per env id and setting: successes / episodes with the 95 % Wilson interval, the mean lap time of the
 successful laps and the crash reasons of the others.
@@ -48,11 +50,19 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=20, help="number of training seeds (default 20)")
     parser.add_argument("--first-seed", type=int, default=0, help="first training seed (default 0)")
     parser.add_argument("--set", nargs="+", default=[], metavar="NAME=V1,V2", help="settings to vary")
+    parser.add_argument(
+        "--gate-shift",
+        type=float,
+        default=None,
+        metavar="M",
+        help="shift the gates up to ±M m per episode (DAgger's training scenes: 0.3; default: the id's)",
+    )
     args = parser.parse_args()
     grid = parse_settings(args.set)
     print("env_id, setting, successes/n, SR [95% CI], mean lap (s), failures")
     for env_id in args.envs:
-        env = gym.make(env_id, obs_mode="state")
+        shift = {} if args.gate_shift is None else {"gate_shift": args.gate_shift}
+        env = gym.make(env_id, obs_mode="state", **shift)
         for values in itertools.product(*grid.values()):
             setting = dict(zip(grid, values, strict=True))
             agent = FastPlannerAgent(**setting)
