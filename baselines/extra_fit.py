@@ -71,11 +71,10 @@ def extra_fit(run: Path, out: Path, epochs: int, seed: int, threads: int = 1) ->
     student = make_student(made[0], config.seed, config.student)
     optimizer = torch.optim.Adam(student.policy.parameters(), lr=config.learning_rate)
     dataset = Dataset(config.max_samples, made[0].unwrapped.camera.size)
-    rng = np.random.default_rng()
-    restore_state(saved, student, optimizer, dataset, rng)
+    restore_state(saved, student, optimizer, dataset, np.random.default_rng())  # the run's own stream is not used
     for env in made:
         env.close()
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(seed)  # the passes' order: --seed, so runs of one script compare pass for pass
     config.epochs = 1  # one pass a fit call, each at its own learning rate
     out.mkdir(parents=True, exist_ok=True)
     made_with = {"run": str(run), "iterations": saved["iteration"] + 1, "epochs": epochs, "seed": seed,
