@@ -27,6 +27,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from racebench.records import atomic_write
 from racebench.training.dagger import (
     DaggerConfig,
     Dataset,
@@ -89,9 +90,9 @@ def extra_fit(run: Path, out: Path, epochs: int, seed: int, threads: int = 1) ->
         rows.append({"pass": k, "learning_rate": rate, "loss": loss, "wall_s": round(time.perf_counter() - started, 1)})
         print(rows[-1], flush=True)
         student.save(out / f"{config.name}-{config.track}.zip")
-    log = pd.DataFrame(rows)
-    log.to_csv(out / "extra_fit.csv", index=False)
-    return log
+        # after every pass, whole or not at all: a killed run keeps the log of the passes it finished
+        atomic_write(out / "extra_fit.csv", pd.DataFrame(rows).to_csv(index=False))
+    return pd.DataFrame(rows)
 
 
 def main() -> None:
