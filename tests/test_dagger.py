@@ -427,3 +427,68 @@ def test_the_steps_before_a_crash_weigh_crash_weight_in_the_loss() -> None:
     assert w.max() == 3.0 and w.min() == 1.0
     torch.testing.assert_close(weighted, (e * w).sum() / w.sum(), rtol=1e-5, atol=1e-7)
     torch.testing.assert_close(plain, e.mean(), rtol=1e-5, atol=1e-7)
+
+
+def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_scenes(tmp_path: Path) -> None:
+    """keep_iterations + select_episodes: the last students and their weight average are flown on validation
+    scenes; the checkpoint is the candidate that finished most (ties: the latest, the average last of all)."""
+    import torch
+
+    from racebench.training.dagger import KEPT_DIR, VALIDATION_SEED_BASE, select_student
+
+    config = DaggerConfig(iterations=3, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=32,
+                          keep_iterations=2, select_episodes=3)  # fmt: skip
+    summary = distill(config, tmp_path, eval_episodes=0)
+    kept = sorted(p.name for p in (tmp_path / KEPT_DIR).iterdir())
+    assert kept == ["vision-dagger-S-average.zip", "vision-dagger-S-it001.zip", "vision-dagger-S-it002.zip"]
+    table = pd.read_csv(tmp_path / "selection.csv")
+    assert table["candidate"].tolist() == ["it001", "it002", "average"] and (table["episodes"] == 3).all()
+    assert table["chosen"].sum() == 1
+    chosen = table[table["chosen"]].iloc[0]
+    best = table[table["successes"] == table["successes"].max()]
+    assert chosen["candidate"] == best["candidate"].iloc[-1]  # the most laps; among equals the latest
+    assert summary["selection"]["candidate"] == chosen["candidate"]
+
+    def weights(path: Path) -> dict[str, torch.Tensor]:
+        return SB3Agent(str(path), trust_code=True).model.policy.state_dict()
+
+    final = weights(Path(summary["checkpoint"]))
+    picked = weights(tmp_path / KEPT_DIR / f"vision-dagger-S-{chosen['candidate']}.zip")
+    assert all(torch.equal(final[k], picked[k]) for k in final)  # the checkpoint is the chosen candidate
+    a, b, mean = (weights(tmp_path / KEPT_DIR / f"vision-dagger-S-{c}.zip") for c in ("it001", "it002", "average"))
+    key = "action_net.weight"
+    torch.testing.assert_close(mean[key], (a[key] + b[key]) / 2)
+    assert not torch.equal(a[key], b[key])  # two different students were kept
+
+    # Validation scenes never overlap the scenes a run trained on.
+    student = SB3Agent(summary["checkpoint"], trust_code=True).model
+    with pytest.raises(ValueError, match="overlap the training seeds"):
+        select_student(tmp_path, config, student, [], (VALIDATION_SEED_BASE - 10, VALIDATION_SEED_BASE + 1))
+    with pytest.raises(ValueError, match="select_episodes must be >= 0, and needs keep_iterations >= 1"):
+        DaggerConfig(select_episodes=10).validate()
+
+
+def test_validation_flights_fly_the_student_as_the_evaluator_does(tmp_path: Path) -> None:
+    """fly_student (batched, raw envs, ray-cast depth) against the evaluator's agent stepping a Gymnasium env:
+    the same episode length and outcome on each scene, in the order the seeds were given."""
+    import gymnasium as gym
+
+    from racebench.training.dagger import fly_student
+
+    summary = distill(DaggerConfig(iterations=1, steps_per_iteration=64, n_envs=4, epochs=1, batch_size=32),
+                      tmp_path, eval_episodes=0)  # fmt: skip
+    agent = SB3Agent(summary["checkpoint"], trust_code=True)
+    made = [gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast") for _ in range(2)]
+    seeds = [1_000_003, 1_000_001, 1_000_002]
+    flown = fly_student([m.unwrapped for m in made], agent.model.policy, seeds)
+    assert [f["seed"] for f in flown] == seeds
+    for seed, result in zip(seeds, flown, strict=True):
+        obs, _ = made[0].reset(seed=seed)
+        agent.start(1)
+        steps, done = 0, False
+        while not done:
+            obs, _, terminated, truncated, info = made[0].step(agent.act_batch([obs])[0])
+            steps, done = steps + 1, terminated or truncated
+        assert (result["steps"], result["success"]) == (steps, bool(info["is_success"]))
+    for m in made:
+        m.close()

@@ -48,6 +48,9 @@ from racebench.planner import FastPlannerAgent, PlannerAgent
 from racebench.raycast import BatchDepthRenderer
 
 TEACHERS: tuple[str, ...] = ("planner-fast", "planner")  # privileged built-ins that can label every state
+# Validation scene i (choosing among a run's kept students, DaggerConfig.select_episodes) has seed
+# VALIDATION_SEED_BASE + i: above every training run's seeds (seed * 1000 + a counter), below the evaluation seeds.
+VALIDATION_SEED_BASE = 800_000
 
 
 @dataclass
@@ -100,6 +103,14 @@ class DaggerConfig:
     # on Circle; baselines/experiments/distill-crash-weight/), hence off by default.
     crash_weight: float = 1.0
     crash_window: int = 50  # steps (1 s at the 50 Hz control rate)
+    # Keep the student of each of the last ``keep_iterations`` iterations (``iterations/`` in the run folder) and,
+    # with ``select_episodes`` > 0, make the run's checkpoint whichever of them (or of their weight average) finishes
+    # most of ``select_episodes`` validation scenes (training randomisation, seeds VALIDATION_SEED_BASE + i: disjoint
+    # from training and evaluation seeds). Why: with the student in control, training success swings by up to 0.3
+    # from one iteration to the next late in a run (distill-gate-centre-per-track/J: 0.47 -> 0.73 -> 0.61), far
+    # beyond its sampling error, so the last iteration's student is one draw from a wide spread.
+    keep_iterations: int = 0
+    select_episodes: int = 0
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> DaggerConfig:
@@ -182,6 +193,11 @@ class DaggerConfig:
             ),
         ]
         checks.append((self.update_threads >= 1, "update_threads must be >= 1"))
+        checks.append((self.keep_iterations >= 0, "keep_iterations must be >= 0"))
+        checks.append((
+            self.select_episodes >= 0 and (self.select_episodes == 0 or self.keep_iterations >= 1),
+            "select_episodes must be >= 0, and needs keep_iterations >= 1",
+        ))  # fmt: skip
         for ok, message in checks:
             if not ok:
                 raise ValueError(f"{source}: {message}")
@@ -401,6 +417,104 @@ def collect(
     }
 
 
+def fly_student(envs: list[Any], policy: Any, seeds: list[int]) -> list[dict[str, Any]]:
+    """The student alone (deterministic actions, no teacher) flies one episode of each scene in ``seeds``,
+    ``len(envs)`` side by side; returns per episode ``seed``, ``success``, ``steps`` and ``lap_time`` (NaN
+    without a lap), in the order of ``seeds``."""
+    caster = BatchDepthRenderer(envs[0].camera)
+    recurrent = is_recurrent(policy)
+    hidden = torch.zeros(1, len(envs), policy.lstm_actor.hidden_size) if recurrent else None
+    queue, flying, steps = list(seeds), [None] * len(envs), [0] * len(envs)
+    results: dict[int, dict[str, Any]] = {}
+
+    def start(i: int) -> None:
+        flying[i] = queue.pop(0) if queue else None
+        if flying[i] is not None:
+            envs[i].reset_state(seed=flying[i])
+            steps[i] = 0
+            if hidden is not None:
+                hidden[:, i] = 0.0
+
+    for i in range(len(envs)):
+        start(i)
+    while any(s is not None for s in flying):
+        active = [i for i, s in enumerate(flying) if s is not None]
+        depth = caster.render(
+            [envs[i].scene for i in active],
+            np.stack([envs[i].drone.position for i in active]),
+            np.stack([envs[i].drone.rotation for i in active]),
+        )
+        obs = [envs[i].observation(d) for i, d in zip(active, depth, strict=True)]
+        batch = {"state": torch.from_numpy(np.stack([o["state"] for o in obs])),
+                 "depth": torch.from_numpy(np.stack([o["depth"] for o in obs]))}  # fmt: skip
+        with torch.no_grad():
+            if hidden is not None:
+                actions, output = student_unroll(
+                    policy, student_features(policy, batch).unsqueeze(0), hidden[:, active]
+                )  # fmt: skip
+                actions, hidden[:, active] = actions[0], output[-1:]
+            else:
+                actions = student_mean(policy, batch)
+        actions = actions.numpy().clip(-1.0, 1.0)
+        for j, i in enumerate(active):
+            _, terminated, truncated, info = envs[i].advance(actions[j])
+            steps[i] += 1
+            if terminated or truncated:
+                results[flying[i]] = {"seed": flying[i], "success": bool(info["is_success"]), "steps": steps[i],
+                                      "lap_time": float(info.get("lap_time", float("nan")))}  # fmt: skip
+                start(i)
+    return [results[s] for s in seeds]
+
+
+def average_weights(states: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """The element-wise mean of several students' ``state_dict``s (non-float entries from the last)."""
+    return {
+        key: torch.stack([s[key] for s in states]).mean(0) if value.is_floating_point() else value
+        for key, value in states[-1].items()
+    }
+
+
+def select_student(
+    out: Path, config: DaggerConfig, student: Any, envs: list[Any], training_seeds: tuple[int, int]
+) -> dict[str, Any]:  # fmt: skip
+    """Fly each kept student (and, with two or more, their weight average) on the ``config.select_episodes``
+    validation scenes, load the one that finishes most into ``student`` (ties: the later iteration; the average
+    counts as the latest), and write ``selection.csv``. ``training_seeds`` is the ``[first, end)`` range the run
+    trained on: validation scenes must lie outside it. Returns the chosen candidate's row."""
+    import pandas as pd
+
+    from racebench.records import atomic_write
+
+    seeds = [VALIDATION_SEED_BASE + i for i in range(config.select_episodes)]
+    if max(training_seeds[0], seeds[0]) < min(training_seeds[1], seeds[-1] + 1):
+        raise ValueError(f"dagger: validation seeds {seeds[0]}..{seeds[-1]} overlap the training seeds "
+                         f"{training_seeds[0]}..{training_seeds[1] - 1}")  # fmt: skip
+    kept = sorted((out / KEPT_DIR).glob(f"{config.name}-{config.track}-it*.zip"))
+    if not kept:
+        raise ValueError(f"dagger: no kept student in {out / KEPT_DIR} to select from")
+    model_class = type(student)
+    candidates = [("it" + path.stem.rsplit("-it", 1)[1], model_class.load(path, device="cpu").policy.state_dict())
+                  for path in kept]  # fmt: skip
+    if len(candidates) >= 2:
+        candidates.append(("average", average_weights([state for _, state in candidates])))
+        student.policy.load_state_dict(candidates[-1][1])
+        student.save(out / KEPT_DIR / f"{config.name}-{config.track}-average.zip")  # evaluable like the others
+    rows = []
+    for rank, (label, state) in enumerate(candidates):
+        student.policy.load_state_dict(state)
+        student.policy.set_training_mode(False)
+        flown = pd.DataFrame(fly_student(envs, student.policy, seeds))
+        laps = flown.loc[flown["success"], "lap_time"]
+        rows.append({"candidate": label, "rank": rank, "episodes": len(flown), "successes": int(flown["success"].sum()),
+                     "lap_time_mean": float(laps.mean()) if len(laps) else float("nan")})  # fmt: skip
+    table = pd.DataFrame(rows)
+    best = int(table.sort_values(["successes", "rank"], ascending=False).index[0])
+    table["chosen"] = table.index == best
+    atomic_write(out / "selection.csv", table.drop(columns="rank").to_csv(index=False))
+    student.policy.load_state_dict(candidates[best][1])
+    return table.drop(columns="rank").iloc[best].to_dict()
+
+
 def make_training_envs(config: DaggerConfig) -> list[gym.Env]:
     """The ``n_envs`` training envs: the config's id (default ``RaceObs-<track>-v0``) with ray-cast depth and the
     config's gate shifts (scene seeds are set per episode by the collector)."""
@@ -530,6 +644,7 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
 
 
 RESUME_DIR = "resume"  # in a run folder: the state after the last finished iteration
+KEPT_DIR = "iterations"  # in a run folder: the students kept for selection (DaggerConfig.keep_iterations)
 
 
 def save_resume_state(
@@ -681,10 +796,17 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         atomic_write(out / "progress.csv", pd.DataFrame(rows).to_csv(index=False))
         # The student after every iteration, so a killed run leaves its latest policy behind.
         policy_model.save(out / f"{config.name}-{config.track}.zip")
+        if k >= config.iterations - config.keep_iterations:
+            (out / KEPT_DIR).mkdir(exist_ok=True)
+            policy_model.save(out / KEPT_DIR / f"{config.name}-{config.track}-it{k:03d}.zip")
         save_resume_state(out, k, policy_model, optimizer, dataset, rng, seeds, rows, config)
+    checkpoint = out / f"{config.name}-{config.track}.zip"
+    selection = None
+    if config.select_episodes > 0:
+        selection = select_student(out, config, policy_model, envs, (config.seed * 1000, seeds[0]))
+        policy_model.save(checkpoint)  # the last iteration's student stays in iterations/
     for m in made:
         m.close()
-    checkpoint = out / f"{config.name}-{config.track}.zip"
     summary: dict[str, Any] = {
         "method": "dagger",
         "teacher": config.teacher,
@@ -697,6 +819,8 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         "timesteps": int(rows[-1]["env_steps"]),  # as a PPO run's summary.json says it
         "last": rows[-1],
     }
+    if selection is not None:
+        summary["selection"] = selection
     if eval_episodes > 0:
         from racebench.evaluation import Evaluator
 
