@@ -460,12 +460,49 @@ def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_
     torch.testing.assert_close(mean[key], (a[key] + b[key]) / 2)
     assert not torch.equal(a[key], b[key])  # two different students were kept
 
-    # Validation scenes never overlap the scenes a run trained on.
+    # The ranking itself, with made-up validation outcomes per candidate (flown in the order it001, it002, average).
+    import racebench.training.dagger as dagger
+
     student = SB3Agent(summary["checkpoint"], trust_code=True).model
+    for counts, winner in (([2, 3, 3], "average"), ([3, 2, 1], "it001"), ([1, 3, 2], "it002"), ([0, 0, 0], "average")):
+        made_up = iter(counts)
+
+        def fly(envs: list, policy: object, seeds: list[int], made_up=made_up) -> list[dict]:
+            n = next(made_up)
+            assert seeds == [VALIDATION_SEED_BASE + i for i in range(3)]
+            return [{"seed": s, "success": i < n, "steps": 100, "lap_time": 4.0 if i < n else float("nan")}
+                    for i, s in enumerate(seeds)]  # fmt: skip
+
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(dagger, "fly_student", fly)
+            row = select_student(tmp_path, config, student, [], (0, 100))
+        assert row["candidate"] == winner and row["successes"] == max(counts)
+        held = student.policy.state_dict()
+        assert all(
+            torch.equal(held[k], weights(tmp_path / KEPT_DIR / f"vision-dagger-S-{winner}.zip")[k]) for k in held
+        )
+        assert pd.read_csv(tmp_path / "selection.csv")["successes"].tolist() == counts
+
+    # Validation scenes never overlap the scenes a run trained on, nor the evaluation scenes.
     with pytest.raises(ValueError, match="overlap the training seeds"):
         select_student(tmp_path, config, student, [], (VALIDATION_SEED_BASE - 10, VALIDATION_SEED_BASE + 1))
+    with pytest.raises(ValueError, match="past the validation seeds"):
+        DaggerConfig(
+            seed=700, iterations=20, steps_per_iteration=25_000, keep_iterations=6, select_episodes=200
+        ).validate()
+    DaggerConfig(seed=2, iterations=20, steps_per_iteration=25_000, keep_iterations=6, select_episodes=200).validate()
+    with pytest.raises(ValueError, match="validation seeds stay below the evaluation seeds"):
+        DaggerConfig(keep_iterations=1, select_episodes=200_001).validate()
     with pytest.raises(ValueError, match="select_episodes must be >= 0, and needs keep_iterations >= 1"):
         DaggerConfig(select_episodes=10).validate()
+    # A missing kept student is named, not silently skipped.
+    (tmp_path / KEPT_DIR / "vision-dagger-S-it001.zip").unlink()
+    with pytest.raises(ValueError, match="it001.zip is missing"):
+        select_student(tmp_path, config, student, [], (0, 100))
+    # A fresh run into the same folder starts without the old run's kept students.
+    (tmp_path / KEPT_DIR / "vision-dagger-S-it007.zip").write_bytes(b"another run's")
+    distill(DaggerConfig(**{**config.__dict__, "select_episodes": 0}), tmp_path, eval_episodes=0)
+    assert not (tmp_path / KEPT_DIR / "vision-dagger-S-it007.zip").exists()
 
 
 def test_validation_flights_fly_the_student_as_the_evaluator_does(tmp_path: Path) -> None:

@@ -26,11 +26,16 @@ steps (:meth:`Dataset.chunks`) that never cross an episode boundary. Before each
 runs, without gradient, through every run in order to give each chunk the GRU state it starts from (zero at
 an episode's first step; :func:`chunk_start_states`), then minibatches of chunks are unrolled from those
 states with the gradient flowing through at most ``sequence_length`` steps.
+
+Optionally (``keep_iterations``, ``select_episodes``) the students of the last iterations are kept and the run's
+checkpoint is whichever of them, or of their weight average, the student alone flies best on validation scenes
+(:func:`select_student`). DAgger itself (and a resumption) always continues from the last iteration's student.
 """
 
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, fields
@@ -49,7 +54,8 @@ from racebench.raycast import BatchDepthRenderer
 
 TEACHERS: tuple[str, ...] = ("planner-fast", "planner")  # privileged built-ins that can label every state
 # Validation scene i (choosing among a run's kept students, DaggerConfig.select_episodes) has seed
-# VALIDATION_SEED_BASE + i: above every training run's seeds (seed * 1000 + a counter), below the evaluation seeds.
+# VALIDATION_SEED_BASE + i: above the training seeds (seed * 1000 + a counter; DaggerConfig.validate checks a bound
+# on that counter) and below the evaluation seeds.
 VALIDATION_SEED_BASE = 800_000
 
 
@@ -197,6 +203,18 @@ class DaggerConfig:
         checks.append((
             self.select_episodes >= 0 and (self.select_episodes == 0 or self.keep_iterations >= 1),
             "select_episodes must be >= 0, and needs keep_iterations >= 1",
+        ))  # fmt: skip
+        # Every step can end an episode and each starts a scene, so a run's seed counter stays below this bound.
+        last_training_seed = self.seed * 1000 + self.iterations * (self.steps_per_iteration + self.n_envs)
+        checks.append((
+            self.select_episodes == 0 or last_training_seed <= VALIDATION_SEED_BASE,
+            f"select_episodes: this run's training seeds may reach {last_training_seed}, past the validation seeds "
+            f"at {VALIDATION_SEED_BASE} (a smaller seed or fewer steps)",
+        ))  # fmt: skip
+        checks.append((
+            VALIDATION_SEED_BASE + self.select_episodes <= EVAL_SEED_BASE,
+            f"select_episodes must be <= {EVAL_SEED_BASE - VALIDATION_SEED_BASE} (validation seeds stay below the "
+            "evaluation seeds)",
         ))  # fmt: skip
         for ok, message in checks:
             if not ok:
@@ -489,11 +507,13 @@ def select_student(
     if max(training_seeds[0], seeds[0]) < min(training_seeds[1], seeds[-1] + 1):
         raise ValueError(f"dagger: validation seeds {seeds[0]}..{seeds[-1]} overlap the training seeds "
                          f"{training_seeds[0]}..{training_seeds[1] - 1}")  # fmt: skip
-    kept = sorted((out / KEPT_DIR).glob(f"{config.name}-{config.track}-it*.zip"))
-    if not kept:
-        raise ValueError(f"dagger: no kept student in {out / KEPT_DIR} to select from")
+    kept = [out / KEPT_DIR / f"{config.name}-{config.track}-it{k:03d}.zip"
+            for k in range(max(0, config.iterations - config.keep_iterations), config.iterations)]  # fmt: skip
+    missing = [path for path in kept if not path.is_file()]
+    if missing:
+        raise ValueError(f"dagger: kept student {missing[0]} is missing: nothing to select from")
     model_class = type(student)
-    candidates = [("it" + path.stem.rsplit("-it", 1)[1], model_class.load(path, device="cpu").policy.state_dict())
+    candidates = [(path.stem.rsplit("-", 1)[1], model_class.load(path, device="cpu").policy.state_dict())
                   for path in kept]  # fmt: skip
     if len(candidates) >= 2:
         candidates.append(("average", average_weights([state for _, state in candidates])))
@@ -658,7 +678,6 @@ def save_resume_state(
     so nothing of the envs needs saving. The folder is written under another name and renamed into place, so a
     kill leaves either the previous iteration's state or this one's.
     """
-    import shutil
 
     partial, final, old = out / f"{RESUME_DIR}.partial", out / RESUME_DIR, out / f"{RESUME_DIR}.old"
     shutil.rmtree(partial, ignore_errors=True)
@@ -712,7 +731,7 @@ def load_resume_state(out: Path, config: DaggerConfig) -> dict[str, Any] | None:
     # A setting added after the state was saved: that run had the setting's default.
     saved, asked = {**asdict(DaggerConfig()), **state["config"]}, asdict(config)
     for key in asked:
-        if key != "iterations" and saved[key] != asked[key]:
+        if key not in ("iterations", "select_episodes") and saved[key] != asked[key]:  # neither changes training
             raise ValueError(f"dagger: cannot resume {out}: it was run with {key}={saved[key]!r}, not {asked[key]!r}")
     if state["iteration"] + 1 > config.iterations:
         raise ValueError(
@@ -773,7 +792,9 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     seeds = [config.seed * 1000]  # training seeds, far below the evaluation seeds
     rows: list[dict[str, Any]] = []
     first, offset = 0, 0.0
-    if saved is not None:
+    if saved is None:  # a fresh run: students another run kept in this folder must not become candidates
+        shutil.rmtree(out / KEPT_DIR, ignore_errors=True)
+    else:
         restore_state(saved, policy_model, optimizer, dataset, rng)
         seeds, rows = saved["seeds"], saved["rows"]
         first, offset = saved["iteration"] + 1, float(rows[-1]["wall_s"]) if rows else 0.0
@@ -802,11 +823,13 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         save_resume_state(out, k, policy_model, optimizer, dataset, rng, seeds, rows, config)
     checkpoint = out / f"{config.name}-{config.track}.zip"
     selection = None
-    if config.select_episodes > 0:
-        selection = select_student(out, config, policy_model, envs, (config.seed * 1000, seeds[0]))
-        policy_model.save(checkpoint)  # the last iteration's student stays in iterations/
-    for m in made:
-        m.close()
+    try:
+        if config.select_episodes > 0:
+            selection = select_student(out, config, policy_model, envs, (config.seed * 1000, seeds[0]))
+            policy_model.save(checkpoint)  # the last iteration's student stays in iterations/
+    finally:
+        for m in made:
+            m.close()
     summary: dict[str, Any] = {
         "method": "dagger",
         "teacher": config.teacher,
