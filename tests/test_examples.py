@@ -167,6 +167,32 @@ def test_paired_outcomes_counts_the_discordant_pairs_and_tests_them_exactly(tmp_
         module.main()
 
 
+def test_selection_report_ranks_candidates_and_pairs_the_chosen_with_the_last(tmp_path, monkeypatch, capsys) -> None:
+    spec = importlib.util.spec_from_file_location("selection_report", ROOT / "baselines" / "selection_report.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    # Validation 5/7/9 of 10 for it018/it019/average (the average chosen); evaluation on seeds 0-9: it018 finishes
+    # 0-3, it019 0-5, average 2-9, so the chosen against the last: 4 only by it (6-9), 2 only by it019 (0, 1).
+    selection = pd.DataFrame({"candidate": ["it018", "it019", "average"], "episodes": 10, "successes": [5, 7, 9],
+                              "lap_time_mean": 4.0, "chosen": [False, False, True]})  # fmt: skip
+    selection.to_csv(tmp_path / "selection.csv", index=False)
+    for name, wins in (("it018", range(0, 4)), ("it019", range(0, 6)), ("average", range(2, 10))):
+        (tmp_path / "c" / name).mkdir(parents=True)
+        rows = [{"env_id": "RaceObs-J-v0", "seed": s, "success": s in wins, "lap_time": 4.0 if s in wins else None}
+                for s in range(10)]  # fmt: skip
+        pd.DataFrame(rows).to_csv(tmp_path / "c" / name / "episodes.csv", index=False)
+    monkeypatch.setattr("sys.argv", ["selection_report", str(tmp_path / "selection.csv"), str(tmp_path / "c")])
+    module.main()
+    out = capsys.readouterr().out
+    assert "average: validation 9/10, evaluation 8/10 [49-94 %], mean lap 4.00 s  <- chosen" in out
+    assert "over 3 candidates: 1.00" in out  # the same order on both
+    assert "chosen average against the last student it019: 4 laps finished only by the chosen, 2 only by the last; " \
+        "exact McNemar p = 0.69" in out  # fmt: skip
+    (tmp_path / "c" / "it018" / "episodes.csv").unlink()
+    with pytest.raises(SystemExit, match="it018/episodes.csv does not exist"):
+        module.main()
+
+
 def test_seeds_report_takes_the_mean_and_spread_of_validated_records(tmp_path, monkeypatch, capsys) -> None:
     spec = importlib.util.spec_from_file_location("seeds_report", ROOT / "baselines" / "seeds_report.py")
     module = importlib.util.module_from_spec(spec)
