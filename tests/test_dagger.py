@@ -434,10 +434,10 @@ def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_
     scenes; the checkpoint is the candidate that finished most (ties: the latest, the average last of all)."""
     import torch
 
-    from racebench.training.dagger import KEPT_DIR, VALIDATION_SEED_BASE, select_student
+    from racebench.training.dagger import KEPT_DIR, VALIDATION_SEED_BASE, choose_student
 
     config = DaggerConfig(iterations=3, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=32,
-                          keep_iterations=2, select_episodes=3)  # fmt: skip
+                          keep_iterations=2, select_episodes=3, final_student="best")  # fmt: skip
     summary = distill(config, tmp_path, eval_episodes=0)
     kept = sorted(p.name for p in (tmp_path / KEPT_DIR).iterdir())
     assert kept == ["vision-dagger-S-average.zip", "vision-dagger-S-it001.zip", "vision-dagger-S-it002.zip"]
@@ -475,7 +475,7 @@ def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_
 
         with pytest.MonkeyPatch.context() as patch:
             patch.setattr(dagger, "fly_student", fly)
-            row = select_student(tmp_path, config, student, [], (0, 100))
+            row = choose_student(tmp_path, config, student, [], (0, 100))
         assert row["candidate"] == winner and row["successes"] == max(counts)
         held = student.policy.state_dict()
         assert all(
@@ -483,9 +483,31 @@ def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_
         )
         assert pd.read_csv(tmp_path / "selection.csv")["successes"].tolist() == counts
 
+    # final_student "average" / "last": that candidate whatever the flights say (here the average finishes fewest).
+    for final, winner in (("average", "average"), ("last", "it002")):
+        made_up = iter([3, 2, 1])
+
+        def fly_made_up(envs: list, policy: object, seeds: list[int], made_up=made_up) -> list[dict]:
+            n = next(made_up)
+            return [{"seed": s, "success": i < n, "steps": 1, "lap_time": 4.0} for i, s in enumerate(seeds)]
+
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(dagger, "fly_student", fly_made_up)
+            row = choose_student(tmp_path, DaggerConfig(**{**config.__dict__, "final_student": final}), student, [],
+                                 (0, 100))  # fmt: skip
+        assert row["candidate"] == winner and row["chosen_by"] == final
+        held, expected = student.policy.state_dict(), weights(tmp_path / KEPT_DIR / f"vision-dagger-S-{winner}.zip")
+        assert all(torch.equal(held[k], expected[k]) for k in held)
+    with pytest.raises(ValueError, match="final_student 'average' needs keep_iterations >= 2"):
+        DaggerConfig(keep_iterations=1, final_student="average").validate()
+    with pytest.raises(ValueError, match="final_student 'best' needs select_episodes >= 1"):
+        DaggerConfig(keep_iterations=3, final_student="best").validate()
+    with pytest.raises(ValueError, match="final_student must be one of"):
+        DaggerConfig(final_student="first").validate()
+
     # Validation scenes never overlap the scenes a run trained on, nor the evaluation scenes.
     with pytest.raises(ValueError, match="overlap the training seeds"):
-        select_student(tmp_path, config, student, [], (VALIDATION_SEED_BASE - 10, VALIDATION_SEED_BASE + 1))
+        choose_student(tmp_path, config, student, [], (VALIDATION_SEED_BASE - 10, VALIDATION_SEED_BASE + 1))
     with pytest.raises(ValueError, match="past the validation seeds"):
         DaggerConfig(
             seed=700, iterations=20, steps_per_iteration=25_000, keep_iterations=6, select_episodes=200
@@ -498,10 +520,12 @@ def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_
     # A missing kept student is named, not silently skipped.
     (tmp_path / KEPT_DIR / "vision-dagger-S-it001.zip").unlink()
     with pytest.raises(ValueError, match="it001.zip is missing"):
-        select_student(tmp_path, config, student, [], (0, 100))
+        choose_student(tmp_path, config, student, [], (0, 100))
     # A fresh run into the same folder starts without the old run's kept students.
     (tmp_path / KEPT_DIR / "vision-dagger-S-it007.zip").write_bytes(b"another run's")
-    distill(DaggerConfig(**{**config.__dict__, "select_episodes": 0}), tmp_path, eval_episodes=0)
+    distill(
+        DaggerConfig(**{**config.__dict__, "select_episodes": 0, "final_student": "last"}), tmp_path, eval_episodes=0
+    )
     assert not (tmp_path / KEPT_DIR / "vision-dagger-S-it007.zip").exists()
 
 
