@@ -552,7 +552,9 @@ def choose_student(
         successes = [row["successes"] for row in rows]
         chosen = max(range(len(rows)), key=lambda i: (successes[i], i))
     else:
-        chosen = labels.index("average" if config.final_student == "average" else kept[-1].stem.rsplit("-", 1)[1])
+        # a run shorter than keep_iterations may have kept one student: its "average" is that student
+        wanted = "average" if config.final_student == "average" and "average" in labels else labels[len(kept) - 1]
+        chosen = labels.index(wanted)
     if seeds:
         table = pd.DataFrame(rows)
         table["chosen"] = table.index == chosen
