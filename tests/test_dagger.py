@@ -553,3 +553,18 @@ def test_validation_flights_fly_the_student_as_the_evaluator_does(tmp_path: Path
         assert (result["steps"], result["success"]) == (steps, bool(info["is_success"]))
     for m in made:
         m.close()
+
+
+def test_a_run_shorter_than_keep_iterations_ships_its_one_kept_student(tmp_path: Path) -> None:
+    """final_student "average" with one kept student (a 1-iteration run of a keep-6 config): that student."""
+    import torch
+
+    from racebench.training.dagger import KEPT_DIR
+
+    config = DaggerConfig(iterations=1, steps_per_iteration=64, n_envs=4, epochs=1, batch_size=32, keep_iterations=6,
+                          final_student="average")  # fmt: skip
+    summary = distill(config, tmp_path, eval_episodes=0)
+    assert summary["selection"] == {"candidate": "it000", "chosen_by": "average"}
+    final = SB3Agent(summary["checkpoint"], trust_code=True).model.policy.state_dict()
+    kept = SB3Agent(str(tmp_path / KEPT_DIR / "vision-dagger-S-it000.zip"), trust_code=True).model.policy.state_dict()
+    assert all(torch.equal(final[k], kept[k]) for k in final)
