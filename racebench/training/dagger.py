@@ -121,9 +121,9 @@ class DaggerConfig:
     select_episodes: int = 0
     # The run's checkpoint (choose_student): "last" (the last iteration's student), "average" (the weight average of
     # the kept students; needs keep_iterations >= 2) or "best" (the candidate that finished most validation scenes;
-    # needs select_episodes). Measured on J seed 0 and Circle seed 1 (experiments/distill-select/): the average of
-    # the last 6 finished 69 and 71 of 100 against 68 and 57 for the last student (Circle paired 22 vs 8, p = 0.02),
-    # the validation pick 67 and 68.
+    # needs select_episodes). Measured on four reruns of the shipped config (experiments/distill-select/): the
+    # average of the last 6 finished 69/71/81/71 of 100 against 68/57/72/66 for the last student (pooled paired
+    # 69 vs 40, p = 0.007); the validation pick was no better than the average.
     final_student: str = "last"
 
     @classmethod
