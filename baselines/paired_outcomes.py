@@ -17,9 +17,8 @@ import argparse
 from pathlib import Path
 
 import pandas as pd
-from scipy.stats import binomtest
 
-from racebench.statistics import wilson_interval
+from racebench.statistics import paired_outcomes, wilson_interval
 
 
 def load(folder: Path) -> pd.DataFrame:
@@ -44,13 +43,10 @@ def main() -> None:
         print(f"{name}: {wins}/{len(frame)} ({100 * wins / len(frame):.0f} % [{100 * low:.0f}-{100 * high:.0f}]), "
               f"mean lap {frame.loc[frame['success'], 'lap_time'].mean():.2f} s; "
               f"failures {({k: int(v) for k, v in causes.value_counts().items()})}")  # fmt: skip
-    pairs = a.merge(b, on=["env_id", "seed"], suffixes=("_a", "_b"))
-    if pairs.empty:
+    n, only_a, only_b, p = paired_outcomes(a, b)
+    if not n:
         raise SystemExit("paired_outcomes: the two evaluations share no (env_id, seed) episode")
-    only_a = int((pairs["success_a"] & ~pairs["success_b"]).sum())
-    only_b = int((pairs["success_b"] & ~pairs["success_a"]).sum())
-    p = binomtest(only_b, only_a + only_b).pvalue if only_a + only_b else 1.0
-    print(f"{len(pairs)} paired episodes: {only_a} finished only by the first, {only_b} only by the second; "
+    print(f"{n} paired episodes: {only_a} finished only by the first, {only_b} only by the second; "
           f"exact McNemar p = {p:.2f}")  # fmt: skip
 
 

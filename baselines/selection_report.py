@@ -18,9 +18,9 @@ import argparse
 from pathlib import Path
 
 import pandas as pd
-from scipy.stats import binomtest, spearmanr
+from scipy.stats import spearmanr
 
-from racebench.statistics import wilson_interval
+from racebench.statistics import paired_outcomes, wilson_interval
 
 
 def candidate_table(selection: pd.DataFrame, folder: Path) -> pd.DataFrame:
@@ -37,14 +37,6 @@ def candidate_table(selection: pd.DataFrame, folder: Path) -> pd.DataFrame:
         rows.append({**row, "eval_successes": wins, "eval_n": len(episodes), "eval_low": low, "eval_high": high,
                      "eval_lap_mean": lap, "episodes_table": episodes})  # fmt: skip
     return pd.DataFrame(rows)
-
-
-def paired(a: pd.DataFrame, b: pd.DataFrame) -> tuple[int, int, float]:
-    """Laps finished only by ``a``, only by ``b``, and the exact McNemar p-value, over shared (env_id, seed)."""
-    pairs = a.merge(b, on=["env_id", "seed"], suffixes=("_a", "_b"))
-    only_a = int((pairs["success_a"] & ~pairs["success_b"]).sum())
-    only_b = int((pairs["success_b"] & ~pairs["success_a"]).sum())
-    return only_a, only_b, binomtest(only_b, only_a + only_b).pvalue if only_a + only_b else 1.0
 
 
 def main() -> None:
@@ -67,7 +59,7 @@ def main() -> None:
     iterations = table[table["candidate"].str.startswith("it")]
     last = iterations.loc[iterations["candidate"].str[2:].astype(int).idxmax()]
     chosen = table[table["chosen"]].iloc[0]
-    only_chosen, only_last, p = paired(chosen["episodes_table"], last["episodes_table"])
+    _, only_chosen, only_last, p = paired_outcomes(chosen["episodes_table"], last["episodes_table"])
     print(f"chosen {chosen['candidate']} against the last student {last['candidate']}: {only_chosen} laps finished "
           f"only by the chosen, {only_last} only by the last; exact McNemar p = {p:.2f}")  # fmt: skip
 

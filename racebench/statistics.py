@@ -9,8 +9,12 @@ bit-identical replay.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from scipy.stats import binomtest, fisher_exact
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 #: False-fail rate of :func:`counts_consistent` (two-sided): a reproduction of a committed count is
 #: rejected by chance at most this often.
@@ -68,3 +72,13 @@ def detectable_doctoring(committed: tuple[int, int], replayed: tuple[int, int], 
     below = [k for k in rejected if k < committed[0]]
     above = [k for k in rejected if k > committed[0]]
     return (max(below) if below else -1), (min(above) if above else n0 + 1)
+
+
+def paired_outcomes(a: pd.DataFrame, b: pd.DataFrame) -> tuple[int, int, int, float]:
+    """Two evaluations paired on the same scenes (``env_id``, ``seed``): the number of pairs, the laps finished only
+    by ``a``, only by ``b``, and the two-sided exact binomial p-value on those discordant pairs (McNemar's exact
+    test; 1 without any)."""
+    pairs = a.merge(b, on=["env_id", "seed"], suffixes=("_a", "_b"))
+    only_a = int((pairs["success_a"] & ~pairs["success_b"]).sum())
+    only_b = int((pairs["success_b"] & ~pairs["success_a"]).sum())
+    return len(pairs), only_a, only_b, binomtest(only_b, only_a + only_b).pvalue if only_a + only_b else 1.0
