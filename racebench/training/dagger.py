@@ -358,6 +358,30 @@ def student_unroll(
     return student_head(policy, output), output
 
 
+def observe(caster: BatchDepthRenderer, envs: list[Any], indices: list[int]) -> list[dict]:
+    """The observations of ``envs[i]`` for ``i`` in ``indices``, their depth images ray-cast in one call."""
+    depth = caster.render(
+        [envs[i].scene for i in indices],
+        np.stack([envs[i].drone.position for i in indices]),
+        np.stack([envs[i].drone.rotation for i in indices]),
+    )
+    return [envs[i].observation(d) for i, d in zip(indices, depth, strict=True)]
+
+
+def student_step(policy: Any, obs: list[dict], hidden: torch.Tensor | None) -> tuple[np.ndarray, torch.Tensor | None]:
+    """The student's deterministic actions (clipped to [-1, 1]) for a batch of observations, and a recurrent
+    student's new GRU state from ``hidden`` ``(1, batch, H)`` (``None`` for a feed-forward one)."""
+    batch = {"state": torch.from_numpy(np.stack([o["state"] for o in obs])),
+             "depth": torch.from_numpy(np.stack([o["depth"] for o in obs]))}  # fmt: skip
+    with torch.no_grad():  # not inference_mode: RaceFeatures converts its CNN weights on first use
+        if hidden is not None:
+            actions, output = student_unroll(policy, student_features(policy, batch).unsqueeze(0), hidden)
+            actions, hidden = actions[0], output[-1:].clone()
+        else:
+            actions = student_mean(policy, batch)
+    return actions.numpy().clip(-1.0, 1.0), hidden
+
+
 def collect(
     envs: list[Any],
     teachers: list[PlannerAgent | FastPlannerAgent],
@@ -384,14 +408,6 @@ def collect(
     hidden = torch.zeros(1, len(envs), policy.lstm_actor.hidden_size) if recurrent else None
     segments: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = [[] for _ in envs]
 
-    def observe(indices: list[int]) -> list[dict]:
-        depth = caster.render(
-            [envs[i].scene for i in indices],
-            np.stack([envs[i].drone.position for i in indices]),
-            np.stack([envs[i].drone.rotation for i in indices]),
-        )
-        return [envs[i].observation(d) for i, d in zip(indices, depth, strict=True)]
-
     def start(i: int) -> None:
         envs[i].reset_state(seed=seeds[0])
         seeds[0] += 1
@@ -409,23 +425,14 @@ def collect(
 
     for i in range(len(envs)):
         start(i)
-    obs = observe(list(range(len(envs))))
+    obs = observe(caster, envs, list(range(len(envs))))
     successes, lengths, taken = [], [], 0
     lengths_now = np.zeros(len(envs), dtype=int)
     while taken < steps:
         teacher = np.array([t.act() for t in teachers], dtype=np.float32).clip(-1.0, 1.0)
-        state = np.stack([o["state"] for o in obs])
-        depth = np.stack([o["depth"] for o in obs])
         for i in range(len(envs)):
-            segments[i].append((state[i], depth[i], teacher[i]))
-        batch = {"state": torch.from_numpy(state), "depth": torch.from_numpy(depth)}
-        with torch.no_grad():  # not inference_mode: RaceFeatures converts its CNN weights on first use
-            if hidden is not None:
-                actions, output = student_unroll(policy, student_features(policy, batch).unsqueeze(0), hidden)
-                student, hidden = actions[0], output[-1:].clone()
-            else:
-                student = student_mean(policy, batch)
-        student = student.numpy().clip(-1.0, 1.0)
+            segments[i].append((obs[i]["state"], obs[i]["depth"], teacher[i]))
+        student, hidden = student_step(policy, obs, hidden)
         use_teacher = rng.random(len(envs)) < beta
         actions = np.where(use_teacher[:, None], teacher, student)
         for i, env in enumerate(envs):
@@ -437,7 +444,7 @@ def collect(
                 lengths_now[i] = 0
                 store(i, crashed=info.get("crash_reason") is not None)
                 start(i)
-        obs = observe(list(range(len(envs))))
+        obs = observe(caster, envs, list(range(len(envs))))
         taken += len(envs)
     for i in range(len(envs)):
         store(i)
@@ -471,23 +478,10 @@ def fly_student(envs: list[Any], policy: Any, seeds: list[int]) -> list[dict[str
         start(i)
     while any(s is not None for s in flying):
         active = [i for i, s in enumerate(flying) if s is not None]
-        depth = caster.render(
-            [envs[i].scene for i in active],
-            np.stack([envs[i].drone.position for i in active]),
-            np.stack([envs[i].drone.rotation for i in active]),
-        )
-        obs = [envs[i].observation(d) for i, d in zip(active, depth, strict=True)]
-        batch = {"state": torch.from_numpy(np.stack([o["state"] for o in obs])),
-                 "depth": torch.from_numpy(np.stack([o["depth"] for o in obs]))}  # fmt: skip
-        with torch.no_grad():
-            if hidden is not None:
-                actions, output = student_unroll(
-                    policy, student_features(policy, batch).unsqueeze(0), hidden[:, active]
-                )  # fmt: skip
-                actions, hidden[:, active] = actions[0], output[-1:]
-            else:
-                actions = student_mean(policy, batch)
-        actions = actions.numpy().clip(-1.0, 1.0)
+        held = None if hidden is None else hidden[:, active]
+        actions, new = student_step(policy, observe(caster, envs, active), held)
+        if new is not None:
+            hidden[:, active] = new
         for j, i in enumerate(active):
             _, terminated, truncated, info = envs[i].advance(actions[j])
             steps[i] += 1
