@@ -68,12 +68,12 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "3197e89e15de4f01be8cfb9e70d3595d9c50f3a15a5f99ea13b505429dfcc6b9": "state-ppo-S/state-ppo-S.zip",
     "3275c4e846ca85e5265e0a26ee96a550e17145365d5c7b7430f5f37f3c748c20": "vision-dagger-S/vision-dagger-S.zip",
     "284472ccda7ca9bb8dacb0445ab51e0d29cd3d7645e2cb72ff469957506fb600": "vision-distill-v1-S/vision-distill-S.zip",
-    "06e8ee03f239db95d483f61c06a53217da2d772652112c8fe6ac89feacf6f7f9": "vision-distill-S/vision-distill-S.zip",
+    "ab21b31bfddbbf6add303d7a694b271802ec9b0174ca333f24a6a5938f298373": "vision-distill-S/vision-distill-S.zip",
     "331274fb6af291ed503425c6995ab14cb3ff5d6d939701883a56c702bf7c40af": "vision-distill-ppo-S/vision-distill-ppo-S.zip",
     "285ab9bce6a778da2b211355f10184fa205996d4cfc7d66ae3bdcbc6b208b6b1": (
         "vision-distill-Circle/vision-distill-Circle.zip"
     ),
-    "b15d357773f7cb5a045eb4c51cef24a1d3ed567227f5b0e2d245b5e716feaf4e": "vision-distill-J/vision-distill-J.zip",
+    "b22cd966241f91efae27854bd6313f2ff57b17b89aa7ce9f6b49d6ac4a70b411": "vision-distill-J/vision-distill-J.zip",
     "75721e4a6e948352f99586a674d9ab24afb3fb07bc62ddaf6949b783c68d8d29": "vision-dagger-J/vision-dagger-J.zip",
     "0cd4efa09868e16ae77ebeb21d6b954b0cb6f81a1db5ad208b059c88020ad403": "vision-dagger-Circle/vision-dagger-Circle.zip",
     "8de98c41bc0adfe5ddccb7b36c909abef4d2058e2246a77d73aefca1da8871ad": (

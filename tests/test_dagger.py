@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from pathlib import Path
 
@@ -11,6 +12,8 @@ import pytest
 
 from racebench.agents import BUILTIN_VERSIONS, SB3Agent
 from racebench.training.dagger import DaggerConfig, Dataset, distill, load_resume_state
+
+ROOT = Path(__file__).parents[1]
 
 
 def segment(values: list[float], size: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -459,6 +462,17 @@ def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_
     key = "action_net.weight"
     torch.testing.assert_close(mean[key], (a[key] + b[key]) / 2)
     assert not torch.equal(a[key], b[key])  # two different students were kept
+
+    # baselines/average_students.py: the last 2 are the run's own average, the last 1 its last student.
+    spec = importlib.util.spec_from_file_location("average_students", ROOT / "baselines" / "average_students.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    assert script.average_last(tmp_path, 2, tmp_path / "k2.zip") == [1, 2]
+    assert script.average_last(tmp_path, 1, tmp_path / "k1.zip") == [2]
+    k2, k1 = weights(tmp_path / "k2.zip"), weights(tmp_path / "k1.zip")
+    assert all(torch.equal(k2[k], mean[k]) for k in mean) and all(torch.equal(k1[k], b[k]) for k in b)
+    with pytest.raises(SystemExit, match="--last 3, but .* keeps 2 students"):
+        script.average_last(tmp_path, 3, tmp_path / "k3.zip")
 
     # The ranking itself, with made-up validation outcomes per candidate (flown in the order it001, it002, average).
     import racebench.training.dagger as dagger
