@@ -70,7 +70,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "284472ccda7ca9bb8dacb0445ab51e0d29cd3d7645e2cb72ff469957506fb600": "vision-distill-v1-S/vision-distill-S.zip",
     "ab21b31bfddbbf6add303d7a694b271802ec9b0174ca333f24a6a5938f298373": "vision-distill-S/vision-distill-S.zip",
     "331274fb6af291ed503425c6995ab14cb3ff5d6d939701883a56c702bf7c40af": "vision-distill-ppo-S/vision-distill-ppo-S.zip",
-    "285ab9bce6a778da2b211355f10184fa205996d4cfc7d66ae3bdcbc6b208b6b1": (
+    "5639e53c43a9f9f45ea1dac34c8058f3c8250b76e7d922016a243e329a07a4ed": (
         "vision-distill-Circle/vision-distill-Circle.zip"
     ),
     "b22cd966241f91efae27854bd6313f2ff57b17b89aa7ce9f6b49d6ac4a70b411": "vision-distill-J/vision-distill-J.zip",
