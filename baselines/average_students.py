@@ -21,7 +21,7 @@ import torch
 from racebench.agents import SB3Agent
 from racebench.training.dagger import KEPT_DIR, average_weights
 
-KEPT_NAME = re.compile(r"^(?P<run>.+)-it(?P<iteration>\d{3})\.zip$")
+KEPT_NAME = re.compile(r"^(?P<run>.+)-it(?P<iteration>\d{3,})\.zip$")
 
 
 def kept_students(run_dir: Path) -> list[tuple[int, Path]]:
@@ -43,15 +43,17 @@ def average_last(run_dir: Path, last: int, out: Path) -> list[int]:
     kept = kept_students(run_dir)
     if not 1 <= last <= len(kept):
         raise SystemExit(f"average_students: --last {last}, but {run_dir / KEPT_DIR} keeps {len(kept)} students "
-                         f"(iterations {kept[0][0]}-{kept[-1][0]})")  # fmt: skip
+                         f"(iterations {', '.join(str(k) for k, _ in kept)})")  # fmt: skip
     chosen = kept[-last:]
-    torch.set_num_threads(1)  # loading and averaging a few MB: more threads only contend with whatever else runs
+    iterations = [iteration for iteration, _ in chosen]
+    if iterations != list(range(iterations[0], iterations[0] + last)):  # e.g. a resumed run's older kept students
+        raise SystemExit(f"average_students: the last {last} kept students are not consecutive iterations {iterations}")
     models = [SB3Agent(str(path), trust_code=True).model for _, path in chosen]
     student = models[-1]
     student.policy.load_state_dict(average_weights([model.policy.state_dict() for model in models]))
     out.parent.mkdir(parents=True, exist_ok=True)
     student.save(out)
-    return [iteration for iteration, _ in chosen]
+    return iterations
 
 
 def main() -> None:
@@ -61,6 +63,9 @@ def main() -> None:
     parser.add_argument("--last", type=int, required=True, help="how many of the last kept students to average")
     parser.add_argument("--out", type=Path, required=True, help="the averaged checkpoint (.zip)")
     args = parser.parse_args()
+    if args.last < 1:
+        parser.error(f"--last must be >= 1, not {args.last}")
+    torch.set_num_threads(1)  # loading and averaging a few MB: more threads only contend with whatever else runs
     iterations = average_last(args.run_dir, args.last, args.out)
     print(f"{args.out}: the weight average of iterations {', '.join(map(str, iterations))}")
 

@@ -467,12 +467,24 @@ def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_
     spec = importlib.util.spec_from_file_location("average_students", ROOT / "baselines" / "average_students.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
+    # Three kept students (it000 a copy of it002, so the last 2 differ from all 3): the last K of them, in order.
+    import shutil
+
+    shutil.copy(tmp_path / KEPT_DIR / "vision-dagger-S-it002.zip", tmp_path / KEPT_DIR / "vision-dagger-S-it000.zip")
     assert script.average_last(tmp_path, 2, tmp_path / "k2.zip") == [1, 2]
     assert script.average_last(tmp_path, 1, tmp_path / "k1.zip") == [2]
-    k2, k1 = weights(tmp_path / "k2.zip"), weights(tmp_path / "k1.zip")
+    assert script.average_last(tmp_path, 3, tmp_path / "k3.zip") == [0, 1, 2]
+    k1, k2, k3 = (weights(tmp_path / f"k{k}.zip") for k in (1, 2, 3))
     assert all(torch.equal(k2[k], mean[k]) for k in mean) and all(torch.equal(k1[k], b[k]) for k in b)
-    with pytest.raises(SystemExit, match="--last 3, but .* keeps 2 students"):
-        script.average_last(tmp_path, 3, tmp_path / "k3.zip")
+    torch.testing.assert_close(k3[key], (a[key] + 2 * b[key]) / 3)
+    for bad, message in ((4, "--last 4, but .* keeps 3 students"), (0, "--last 0")):
+        with pytest.raises(SystemExit, match=message):
+            script.average_last(tmp_path, bad, tmp_path / "bad.zip")
+    (tmp_path / KEPT_DIR / "vision-dagger-S-it001.zip").rename(tmp_path / KEPT_DIR / "vision-dagger-S-it1001.zip")
+    with pytest.raises(SystemExit, match=r"not consecutive iterations \[2, 1001\]"):
+        script.average_last(tmp_path, 2, tmp_path / "gap.zip")
+    (tmp_path / KEPT_DIR / "vision-dagger-S-it1001.zip").rename(tmp_path / KEPT_DIR / "vision-dagger-S-it001.zip")
+    (tmp_path / KEPT_DIR / "vision-dagger-S-it000.zip").unlink()
 
     # The ranking itself, with made-up validation outcomes per candidate (flown in the order it001, it002, average).
     import racebench.training.dagger as dagger
