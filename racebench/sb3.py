@@ -30,6 +30,9 @@ class RaceSB3VecEnv(VecEnv):
         context: multiprocessing start method for the workers (default ``forkserver`` where available).
         max_episode_steps: also truncate after this many steps, as the ``TimeLimit`` around ``gym.make``'s envs
             does (``None``: the envs' own time limit alone).
+        teacher: for training only: ``FastPlannerAgent`` kwargs of a privileged teacher that labels each returned
+            observation, in ``infos[i]["teacher_action"]`` (on an episode's end: the new episode's first
+            observation's label; see :class:`~racebench.vector.EnvBatch`). ``None``: no labels.
         **env_kwargs: ``RaceEnv`` kwargs shared by every env.
     """
 
@@ -40,13 +43,14 @@ class RaceSB3VecEnv(VecEnv):
         num_processes: int = 1,
         context: str | None = None,
         max_episode_steps: int | None = None,
+        teacher: dict[str, Any] | None = None,
         **env_kwargs: Any,
     ) -> None:
         probe = probe_env(env_kwargs)
         try:
             mode = AutoresetMode.SAME_STEP
             self._backend = make_backend(
-                num_envs, num_processes, context, mode, SB3_INFOS, env_kwargs, probe, max_episode_steps
+                num_envs, num_processes, context, mode, SB3_INFOS, env_kwargs, probe, max_episode_steps, teacher
             )
         finally:
             probe.close()  # only its spaces and settings are used from here on

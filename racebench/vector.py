@@ -37,6 +37,8 @@ from racebench.env import STATE_DIM, RaceEnv
 
 #: ``multiprocessing.RawArray`` type codes of the depth dtypes (``depth_format``) held in shared memory.
 _TYPECODES: dict[str, str] = {"float32": "f", "uint8": "B"}
+#: Info key of the training teacher's action for the observation returned with the info (``EnvBatch(teacher=...)``).
+TEACHER_KEY = "teacher_action"
 GYM_INFOS, SB3_INFOS = "gym", "sb3"  # info formats: Gymnasium's dict of arrays with "_key" masks; SB3's list of dicts
 
 
@@ -139,6 +141,9 @@ class EnvBatch:
         state, depth: the output arrays (allocated here when ``None``).
         max_episode_steps: also truncate an episode after this many steps, as Gymnasium's ``TimeLimit`` does
             around each env that ``gym.make`` builds (``None``: the envs' own time limit alone).
+        teacher: for training only: ``FastPlannerAgent`` kwargs of a privileged teacher per env (``None``: none).
+            It is reset with its env and, after every reset and step, labels the observation returned: its action
+            for that state is in the info as ``"teacher_action"`` (:data:`TEACHER_KEY`), never in the observation.
     """
 
     def __init__(
@@ -148,9 +153,15 @@ class EnvBatch:
         state: np.ndarray | None = None,
         depth: np.ndarray | None = None,
         max_episode_steps: int | None = None,
+        teacher: dict[str, Any] | None = None,
     ) -> None:
         self.envs = [RaceEnv(**kw) for kw in env_kwargs]
         self.max_episode_steps = max_episode_steps
+        self.teachers = None
+        if teacher is not None:
+            from racebench.planner import FastPlannerAgent
+
+            self.teachers = [FastPlannerAgent(**teacher) for _ in self.envs]
         first = self.envs[0]
         if any(
             (e.obs_mode, e.renderer, e.depth_format) != (first.obs_mode, first.renderer, first.depth_format)
@@ -201,7 +212,21 @@ class EnvBatch:
         for i in indices:
             infos[i] = self.envs[i].reset_state(seed=seeds[i], options=options[i] or None)
             self._needs_reset[i] = False
+            self._reset_teacher(i)
         self._observe(indices)
+        return self._label(infos, indices)
+
+    def _reset_teacher(self, i: int) -> None:
+        if self.teachers is not None:
+            self.teachers[i].reset(env=self.envs[i])
+
+    def _label(self, infos: list[Any], indices: Sequence[int]) -> list[Any]:
+        """``infos`` with the teacher's action for the current state of envs ``indices`` (if there is a teacher)."""
+        if self.teachers is None:
+            return infos
+        for i in indices:
+            label = np.clip(np.asarray(self.teachers[i].act(), dtype=np.float32), -1.0, 1.0)
+            infos[i] = {**infos[i], TEACHER_KEY: label}
         return infos
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
@@ -220,6 +245,7 @@ class EnvBatch:
         for i, env in enumerate(self.envs):
             if self.autoreset_mode == AutoresetMode.NEXT_STEP and self._needs_reset[i]:
                 infos[i] = env.reset_state()
+                self._reset_teacher(i)
             else:
                 rewards[i], terminations[i], truncations[i], infos[i] = env.advance(actions[i])
                 if self.max_episode_steps is not None and env.steps >= self.max_episode_steps:
@@ -231,9 +257,10 @@ class EnvBatch:
             for i in ended:
                 final = {"final_obs": observations[i], "final_info": infos[i]}
                 infos[i] = {**final, **self.envs[i].reset_state()}
+                self._reset_teacher(i)
             self._observe(ended)
         self._needs_reset = done
-        return rewards, terminations, truncations, infos
+        return rewards, terminations, truncations, self._label(infos, range(n))
 
     def call(
         self, name: str, args: tuple, kwargs: dict[str, Any], indices: Sequence[int], invoke: bool = True
@@ -269,6 +296,8 @@ def _format(result: tuple, info_format: str) -> tuple:
             reset_infos[i] = {k: v for k, v in info.items() if k not in ("final_obs", "final_info")}
             step_info = dict(info["final_info"])
             step_info["terminal_observation"] = info["final_obs"]
+            if TEACHER_KEY in info:  # the label of the observation returned, i.e. of the new episode's first
+                step_info[TEACHER_KEY] = info[TEACHER_KEY]
         else:
             step_info = dict(info)
         step_info["TimeLimit.truncated"] = bool(truncations[i] and not terminations[i])
@@ -288,6 +317,7 @@ def _worker(
     state_shape: tuple[int, ...],
     depth_layout: tuple[tuple[int, ...], str] | None,
     max_episode_steps: int | None,
+    teacher: dict[str, Any] | None = None,
 ) -> None:
     """Worker process: owns an :class:`EnvBatch` writing into its slice of the shared observation arrays."""
     try:
@@ -297,7 +327,7 @@ def _worker(
         if depth_layout is not None:
             shape, dtype = depth_layout
             depth = np.frombuffer(buffers[1], dtype=dtype).reshape(total, *shape)[offset : offset + n]
-        batch = EnvBatch(env_kwargs, autoreset_mode, state, depth, max_episode_steps)
+        batch = EnvBatch(env_kwargs, autoreset_mode, state, depth, max_episode_steps, teacher)
         conn.send(("ok", os.getpid()))
     except Exception:  # report to the parent, which raises
         conn.send(("error", traceback.format_exc()))
@@ -342,6 +372,7 @@ class _Backend:
         state_shape: tuple[int, ...],
         depth_layout: tuple[tuple[int, ...], str] | None,
         max_episode_steps: int | None = None,
+        teacher: dict[str, Any] | None = None,
     ) -> None:
         n = len(env_kwargs)
         self.info_format = info_format
@@ -374,7 +405,7 @@ class _Backend:
                 chunk = env_kwargs[offset : offset + size]
                 args = (
                     child, chunk, autoreset_mode, info_format, buffers, offset, n, state_shape, depth_layout,
-                    max_episode_steps,
+                    max_episode_steps, teacher,
                 )  # fmt: skip
                 process = ctx.Process(target=_worker, args=args, daemon=True)
                 process.start()
@@ -384,7 +415,9 @@ class _Backend:
         first = self.sizes[0]
         try:
             depth = self.depth[:first] if self.depth is not None else None
-            self.local = EnvBatch(env_kwargs[:first], autoreset_mode, self.state[:first], depth, max_episode_steps)
+            self.local = EnvBatch(
+                env_kwargs[:first], autoreset_mode, self.state[:first], depth, max_episode_steps, teacher
+            )
             self.pids = [os.getpid(), *self._gather()]
         except BaseException:
             self.close()
@@ -493,8 +526,10 @@ def make_backend(
     env_kwargs: dict[str, Any],
     probe: RaceEnv,
     max_episode_steps: int | None = None,
+    teacher: dict[str, Any] | None = None,
 ) -> _Backend:
-    """The envs of a front end (shared by :class:`RaceVectorEnv` and :class:`racebench.sb3.RaceSB3VecEnv`)."""
+    """The envs of a front end (shared by :class:`RaceVectorEnv` and :class:`racebench.sb3.RaceSB3VecEnv`);
+    ``teacher``: see :class:`EnvBatch`."""
     if max_episode_steps is not None and (
         isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, int) or max_episode_steps < 1
     ):
@@ -509,8 +544,9 @@ def make_backend(
         depth_layout = (tuple(space.shape), np.dtype(space.dtype).name)
     kwargs = [dict(env_kwargs) for _ in range(num_envs)]
     return _Backend(
-        kwargs, autoreset_mode, info_format, num_processes, context, (STATE_DIM,), depth_layout, max_episode_steps
-    )
+        kwargs, autoreset_mode, info_format, num_processes, context, (STATE_DIM,), depth_layout, max_episode_steps,
+        teacher,
+    )  # fmt: skip
 
 
 def probe_env(env_kwargs: dict[str, Any]) -> RaceEnv:

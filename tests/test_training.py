@@ -620,6 +620,119 @@ def test_bc_to_the_student_steps_towards_it_along_the_rollout(tmp_path: Path) ->
         TrainConfig(name="t", bc_coef=-1.0, init_from="x.zip").validate()
 
 
+TEACHER = {"gate_clearance": 0.5, "wanted_clearance": 0.6, "integral_gain": 0.0}
+
+
+def replay_teacher_labels(env_kwargs: dict, seed: int, actions: np.ndarray) -> np.ndarray:
+    """The teacher's action for each state of one env flown alone with ``actions`` from ``reset(seed)``, reset
+    (unseeded, as a vector env autoresets) whenever an episode ends: the labels a labelled vector env must give."""
+    import gymnasium as gym
+
+    from racebench.env import RaceEnv
+    from racebench.planner import FastPlannerAgent
+
+    limit = gym.spec("RaceObs-S-v0").max_episode_steps
+    env, teacher = RaceEnv(**env_kwargs), FastPlannerAgent(**TEACHER)
+    env.reset_state(seed=seed)
+    teacher.reset(env=env)
+    labels = []
+    for action in actions:
+        labels.append(np.clip(teacher.act(), -1.0, 1.0))
+        _, terminated, truncated, _ = env.advance(np.clip(action, -1.0, 1.0))
+        if terminated or truncated or env.steps >= limit:
+            env.reset_state()
+            teacher.reset(env=env)
+    env.close()
+    return np.stack(labels).astype(np.float32)
+
+
+@pytest.mark.parametrize("num_processes", [1, 2])
+def test_teacher_labels_are_its_actions_for_the_observations_returned(num_processes: int) -> None:
+    """RaceSB3VecEnv(teacher=...): each observation comes with the teacher's action for that state, the first ones
+    in reset_infos, the first of a new episode in the ending step's info; the observation itself is unchanged."""
+    import gymnasium as gym
+
+    from racebench.sb3 import make_sb3_vec_env
+
+    kwargs = {"obs_mode": "state", "start_mode": "gates"}
+    env = make_sb3_vec_env("RaceObs-S-v0", n_envs=2, seed=11, num_processes=num_processes, teacher=TEACHER, **kwargs)
+    plain = make_sb3_vec_env("RaceObs-S-v0", n_envs=2, seed=11, **kwargs)
+    labelled_obs, plain_obs = env.reset(), plain.reset()
+    labels = [np.stack([info["teacher_action"] for info in env.unwrapped.reset_infos])]
+    rng = np.random.default_rng(0)
+    actions, ends = [], 0
+    for _ in range(60):  # random actions end episodes within tens of steps: autoresets are exercised
+        actions.append(rng.uniform(-1, 1, size=(2, 4)).astype(np.float32))
+        labelled_obs, _, dones, infos = env.step(actions[-1])
+        plain_obs, *_ = plain.step(actions[-1])
+        np.testing.assert_array_equal(labelled_obs, plain_obs)  # labels never reach the observation
+        labels.append(np.stack([info["teacher_action"] for info in infos]))
+        ends += int(dones.sum())
+    env.close()
+    plain.close()
+    assert ends >= 2
+    spec_kwargs = {**gym.spec("RaceObs-S-v0").kwargs, **kwargs}
+    for i in range(2):
+        expected = replay_teacher_labels(spec_kwargs, 11 + i, np.stack(actions)[:, i])
+        np.testing.assert_allclose(np.stack(labels)[:-1, i], expected, atol=1e-6)
+
+
+def test_bc_to_the_teacher_clones_its_labels_of_the_rollout(tmp_path: Path) -> None:
+    """bc_target "teacher": the targets of each rollout are the teacher's actions for exactly the states in the
+    rollout buffer (replayed alone from the buffer's actions, across rollouts and episode ends), and one BC step
+    brings the policy's actions closer to them."""
+    from racebench.sb3 import make_sb3_vec_env
+    from racebench.training.train import TeacherBCCallback, mean_actions_along
+
+    config = small(TrainConfig(name="t", obs_mode="state", bc_coef=1.0, bc_target="teacher"), vec_env="race",
+                   learning_rate=(1e-3, 1e-3))  # fmt: skip
+    kwargs = config.env_kwargs("S")
+    env = make_sb3_vec_env("RaceObs-S-v0", n_envs=2, seed=0, teacher=config.teacher, **kwargs)
+    model = make_model(config, env, seed=0, tensorboard=None)  # seeds env i with 0 + i
+    bc = TeacherBCCallback(coef=1.0, threads=1)
+    rollouts = []
+    targets = bc._targets
+
+    def record(obs, starts, buffer):  # noqa: ANN001, ANN202 - the callback's own signature
+        target = targets(obs, starts, buffer)
+        rollouts.append((target.numpy().copy(), buffer.actions.copy(), starts.copy()))
+        return target
+
+    bc._targets = record
+    model.learn(3 * config.n_envs * config.n_steps, callback=bc)
+    target, actions, starts = (np.concatenate(column) for column in zip(*rollouts, strict=True))
+    assert target.shape == (3 * config.n_steps, 2, 4) and starts[1:].sum() >= 1  # an episode ended on the way
+    import gymnasium as gym
+
+    for i in range(2):
+        expected = replay_teacher_labels({**gym.spec("RaceObs-S-v0").kwargs, **kwargs}, i, actions[:, i])
+        np.testing.assert_allclose(target[:, i], expected, atol=1e-6)
+
+    obs, starts, start_hidden, last = bc.pending
+
+    def distance() -> float:
+        with torch.no_grad():
+            return float(torch.nn.functional.mse_loss(mean_actions_along(model.policy, obs, starts, start_hidden)[0],
+                                                      last))  # fmt: skip
+
+    before = distance()
+    bc._on_rollout_start()
+    assert bc.distances[-1] == pytest.approx(before, rel=1e-4) and distance() < before
+    env.close()
+
+
+def test_bc_target_settings_are_checked() -> None:
+    TrainConfig(name="t", bc_coef=1.0, bc_target="teacher", vec_env="race").validate()  # no init_from needed
+    with pytest.raises(ValueError, match="bc_target must be one of"):
+        TrainConfig(name="t", bc_target="expert").validate()
+    with pytest.raises(ValueError, match="bc_target 'teacher' needs vec_env 'race'"):
+        TrainConfig(name="t", bc_coef=1.0, bc_target="teacher", vec_env="dummy").validate()
+    with pytest.raises(ValueError, match="teacher: .*unexpected keyword argument 'berth'"):
+        TrainConfig(name="t", teacher={"berth": 0.5}).validate()
+    with pytest.raises(ValueError, match="teacher: must be a mapping"):
+        TrainConfig(name="t", teacher=[0.5]).validate()
+
+
 def test_fine_tuning_with_bc_runs_on_depth_and_reports_its_distance(tmp_path: Path) -> None:
     config = small(TrainConfig.from_yaml("vision-distill-ppo"), n_envs=4, n_steps=32, batch_size=64)
     env = make_vec_env("RaceObs-S-v0", n_envs=1, env_kwargs=config.env_kwargs("S"), vec_env_cls=DummyVecEnv)
