@@ -69,7 +69,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "3275c4e846ca85e5265e0a26ee96a550e17145365d5c7b7430f5f37f3c748c20": "vision-dagger-S/vision-dagger-S.zip",
     "284472ccda7ca9bb8dacb0445ab51e0d29cd3d7645e2cb72ff469957506fb600": "vision-distill-v1-S/vision-distill-S.zip",
     "ab21b31bfddbbf6add303d7a694b271802ec9b0174ca333f24a6a5938f298373": "vision-distill-S/vision-distill-S.zip",
-    "331274fb6af291ed503425c6995ab14cb3ff5d6d939701883a56c702bf7c40af": "vision-distill-ppo-S/vision-distill-ppo-S.zip",
+    "2db06548dde9f2989e1d25394faac2d02a37deaff6e2893bbf4b4eb7da64650a": "vision-distill-ppo-S/vision-distill-ppo-S.zip",
     "5639e53c43a9f9f45ea1dac34c8058f3c8250b76e7d922016a243e329a07a4ed": (
         "vision-distill-Circle/vision-distill-Circle.zip"
     ),
