@@ -79,7 +79,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "8de98c41bc0adfe5ddccb7b36c909abef4d2058e2246a77d73aefca1da8871ad": (
         "vision-distill-ppo-Circle/vision-distill-ppo-Circle.zip"
     ),
-    "ef647d0ba4b7b11827421990ce8e6c6492ea4975480d834cebdea379001d5869": "vision-distill-ppo-J/vision-distill-ppo-J.zip",
+    "b95ac725bf00271c31b1cb00bb383e29dc1c887d30fe7311e740e4c051d9510f": "vision-distill-ppo-J/vision-distill-ppo-J.zip",
 }
 
 
