@@ -568,6 +568,16 @@ def test_fine_tuning_starts_from_the_student_and_warms_up_the_critic_alone(tmp_p
         train(other, "S", steps=64, seed=3, out=tmp_path / "y", eval_episodes=0)
 
 
+def bc_distance(policy, pending: tuple) -> float:  # noqa: ANN001 - an SB3 policy
+    """The BC loss of ``policy`` on a callback's pending rollout ``(obs, starts, start_hidden, target)``."""
+    from racebench.training.train import mean_actions_along
+
+    obs, starts, start_hidden, target = pending
+    with torch.no_grad():
+        actions = mean_actions_along(policy, obs, starts, start_hidden)[0]
+    return float(torch.nn.functional.mse_loss(actions, target))
+
+
 def test_bc_to_the_student_steps_towards_it_along_the_rollout(tmp_path: Path) -> None:
     """bc_coef: the anchor's actions along a rollout are the ones it takes stepping it (state carried, reset
     at episode starts); one BC step brings the policy's actions on that rollout closer to them."""
@@ -603,15 +613,11 @@ def test_bc_to_the_student_steps_towards_it_along_the_rollout(tmp_path: Path) ->
     obs, starts, start_hidden, target = bc.pending
     assert target.shape == (config.n_steps, config.n_envs, 4)
 
-    def distance() -> float:
-        with torch.no_grad():
-            return float(torch.nn.functional.mse_loss(mean_actions_along(model.policy, obs, starts, start_hidden)[0],
-                                                      target))  # fmt: skip
-
-    before = distance()
+    before = bc_distance(model.policy, bc.pending)
     bc._on_rollout_start()
     assert bc.distances == [pytest.approx(before, rel=1e-4)] and before > 1e-3
-    assert distance() < before  # one step of the BC loss moved the policy's actions towards the student's
+    # one step of the BC loss moved the policy's actions towards the student's
+    assert bc_distance(model.policy, (obs, starts, start_hidden, target)) < before
     env.close()
 
     with pytest.raises(ValueError, match="bc_coef needs init_from"):
@@ -682,7 +688,7 @@ def test_bc_to_the_teacher_clones_its_labels_of_the_rollout(tmp_path: Path) -> N
     rollout buffer (replayed alone from the buffer's actions, across rollouts and episode ends), and one BC step
     brings the policy's actions closer to them."""
     from racebench.sb3 import make_sb3_vec_env
-    from racebench.training.train import TeacherBCCallback, mean_actions_along
+    from racebench.training.train import TeacherBCCallback
 
     config = small(TrainConfig(name="t", obs_mode="state", bc_coef=1.0, bc_target="teacher"), vec_env="race",
                    learning_rate=(1e-3, 1e-3))  # fmt: skip
@@ -708,16 +714,10 @@ def test_bc_to_the_teacher_clones_its_labels_of_the_rollout(tmp_path: Path) -> N
         expected = replay_teacher_labels({**gym.spec("RaceObs-S-v0").kwargs, **kwargs}, i, actions[:, i])
         np.testing.assert_allclose(target[:, i], expected, atol=1e-6)
 
-    obs, starts, start_hidden, last = bc.pending
-
-    def distance() -> float:
-        with torch.no_grad():
-            return float(torch.nn.functional.mse_loss(mean_actions_along(model.policy, obs, starts, start_hidden)[0],
-                                                      last))  # fmt: skip
-
-    before = distance()
+    pending = bc.pending
+    before = bc_distance(model.policy, pending)
     bc._on_rollout_start()
-    assert bc.distances[-1] == pytest.approx(before, rel=1e-4) and distance() < before
+    assert bc.distances[-1] == pytest.approx(before, rel=1e-4) and bc_distance(model.policy, pending) < before
     env.close()
 
 

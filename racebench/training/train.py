@@ -202,6 +202,7 @@ class TrainConfig:
 
     def validate(self, source: str = "config") -> None:
         """Raise ``ValueError`` naming the first bad setting."""
+        teacher_problem = self.teacher_error()
         checks = [
             (self.obs_mode in ("vision", "state"), "obs_mode must be 'vision' or 'state'"),
             (self.start_mode in ("track", "gates"), "start_mode must be 'track' or 'gates'"),
@@ -233,7 +234,7 @@ class TrainConfig:
                 self.bc_coef == 0.0 or self.bc_target != "teacher" or self.vec_env == "race",
                 "bc_target 'teacher' needs vec_env 'race' (its envs carry the teacher's labels)",
             ),
-            (self.teacher_error() is None, f"teacher: {self.teacher_error()}"),
+            (teacher_problem is None, f"teacher: {teacher_problem}"),
         ]
         for ok, message in checks:
             if not ok:
