@@ -76,7 +76,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "b22cd966241f91efae27854bd6313f2ff57b17b89aa7ce9f6b49d6ac4a70b411": "vision-distill-J/vision-distill-J.zip",
     "75721e4a6e948352f99586a674d9ab24afb3fb07bc62ddaf6949b783c68d8d29": "vision-dagger-J/vision-dagger-J.zip",
     "0cd4efa09868e16ae77ebeb21d6b954b0cb6f81a1db5ad208b059c88020ad403": "vision-dagger-Circle/vision-dagger-Circle.zip",
-    "8de98c41bc0adfe5ddccb7b36c909abef4d2058e2246a77d73aefca1da8871ad": (
+    "628cf97178bfa842d3c1a74bdc78e56071ede7c8a1cbb70b76b526af3a390853": (
         "vision-distill-ppo-Circle/vision-distill-ppo-Circle.zip"
     ),
     "b95ac725bf00271c31b1cb00bb383e29dc1c887d30fe7311e740e4c051d9510f": "vision-distill-ppo-J/vision-distill-ppo-J.zip",
