@@ -27,6 +27,7 @@ from racebench.training.train import (
     TrainConfig,
     _restore_reward_stats,
     _save_atomically,
+    archive_finished_part,
     load_config,
     make_envs,
     make_model,
@@ -414,6 +415,25 @@ def test_checkpoint_save_load_same_actions(tmp_path: Path) -> None:
     # Resume continues from the checkpoint and the saved curriculum level.
     resumed = train(config, "S", steps=64, seed=0, out=tmp_path, resume=result["checkpoint"], eval_episodes=0)
     assert resumed["timesteps"] >= 128
+    # The first part's summary is kept aside, not overwritten, and the new one is this part's.
+    first = json.loads((tmp_path / f"summary-{result['timesteps']}-steps.json").read_text())
+    assert first["timesteps"] == result["timesteps"] and resumed["resumed_at"] == result["timesteps"]
+    assert json.loads((tmp_path / "summary.json").read_text())["timesteps"] == resumed["timesteps"]
+
+
+def test_resuming_a_finished_run_evaluates_the_new_checkpoint(tmp_path: Path) -> None:
+    """A finished run's ``eval/`` holds its checkpoint's records; resumed, the final evaluation is the new policy's."""
+    config = small(TrainConfig.from_yaml(BASELINES[0].parent / "vision-ppo.yaml"))
+    result = train(config, "S", steps=64, seed=0, out=tmp_path, eval_episodes=1)
+    resumed = train(config, "S", steps=64, seed=0, out=tmp_path, resume=result["checkpoint"], eval_episodes=1)
+    assert resumed["eval"]["n"] == 1
+    archived = tmp_path / f"eval-{result['timesteps']}-steps"
+    old, new = (pd.read_csv(d / "episodes.csv") for d in (archived, tmp_path / "eval"))
+    assert len(old) == len(new) == 1
+    assert old["policy_sha256"][0] != new["policy_sha256"][0]
+    assert new["policy_sha256"][0] == SB3Agent(resumed["checkpoint"], trust_code=True).sha256
+    with pytest.raises(ValueError, match="both exist"):  # a second archive of the same step: refused, not overwritten
+        archive_finished_part(tmp_path, result["timesteps"])
 
 
 def test_resume_after_a_killed_run(tmp_path: Path) -> None:

@@ -903,6 +903,7 @@ def train(
     else:
         model = _load_model(resume, resolve_device(device))
         started_at = model.num_timesteps
+        archive_finished_part(out, started_at)
         level, promotions = resume_curriculum(out, started_at, config.start_level)
         if started_at > 0 and not (state_file.exists() or (out / "progress.csv").exists()):
             warnings.warn(
@@ -986,6 +987,25 @@ def train(
         summary["eval"] = {k: _plain(result[k]) for k in ("n", "successes", "success_rate", "lap_time_mean")}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def archive_finished_part(out: Path, started_at: int) -> list[Path]:
+    """Move the final ``summary.json`` and ``eval/`` of an earlier, finished part of a run aside before it is resumed.
+
+    They belong to the checkpoint the resume starts from, not to the one it will write: left in place the final
+    evaluation would refuse ``eval/`` (another policy's records) and a failed or skipped evaluation would leave the
+    old summary beside the new checkpoint. They become ``summary-<started_at>-steps.json`` and
+    ``eval-<started_at>-steps/``. Returns the new paths (none for a killed run, which wrote neither).
+    """
+    moved = []
+    for name, archived in (("summary.json", f"summary-{started_at}-steps.json"), ("eval", f"eval-{started_at}-steps")):
+        source, target = out / name, out / archived
+        if source.exists():
+            if target.exists():
+                raise ValueError(f"resuming into {out}: {source} and {target} both exist; move one of them away")
+            source.rename(target)
+            moved.append(target)
+    return moved
 
 
 def _restore_reward_stats(env: VecEnv, checkpoint: Path) -> None:
