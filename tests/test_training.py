@@ -432,8 +432,11 @@ def test_resuming_a_finished_run_evaluates_the_new_checkpoint(tmp_path: Path) ->
     assert len(old) == len(new) == 1
     assert old["policy_sha256"][0] != new["policy_sha256"][0]
     assert new["policy_sha256"][0] == SB3Agent(resumed["checkpoint"], trust_code=True).sha256
-    with pytest.raises(ValueError, match="both exist"):  # a second archive of the same step: refused, not overwritten
+    # Archived under the steps of the model they describe; a taken name moves nothing rather than overwrite.
+    (tmp_path / f"eval-{resumed['timesteps']}-steps").mkdir()
+    with pytest.raises(ValueError, match="both exist"):
         archive_finished_part(tmp_path, result["timesteps"])
+    assert (tmp_path / "summary.json").is_file() and (tmp_path / "eval" / "episodes.csv").is_file()
 
 
 def test_resume_after_a_killed_run(tmp_path: Path) -> None:

@@ -992,20 +992,26 @@ def train(
 def archive_finished_part(out: Path, started_at: int) -> list[Path]:
     """Move the final ``summary.json`` and ``eval/`` of an earlier, finished part of a run aside before it is resumed.
 
-    They belong to the checkpoint the resume starts from, not to the one it will write: left in place the final
+    They belong to that part's final model, not to the one the resume will write: left in place the final
     evaluation would refuse ``eval/`` (another policy's records) and a failed or skipped evaluation would leave the
-    old summary beside the new checkpoint. They become ``summary-<started_at>-steps.json`` and
-    ``eval-<started_at>-steps/``. Returns the new paths (none for a killed run, which wrote neither).
+    old summary beside the new checkpoint. They become ``summary-<n>-steps.json`` and ``eval-<n>-steps/``, ``n``
+    the steps of that final model (the summary's ``timesteps``; ``started_at`` if it cannot be read). Nothing moves
+    if either name is taken. Returns the new paths (none for a killed run, which wrote neither).
     """
-    moved = []
-    for name, archived in (("summary.json", f"summary-{started_at}-steps.json"), ("eval", f"eval-{started_at}-steps")):
-        source, target = out / name, out / archived
-        if source.exists():
-            if target.exists():
-                raise ValueError(f"resuming into {out}: {source} and {target} both exist; move one of them away")
-            source.rename(target)
-            moved.append(target)
-    return moved
+    summary = out / "summary.json"
+    try:
+        steps = int(json.loads(summary.read_text())["timesteps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        steps = started_at
+    moves = [(out / name, out / archived) for name, archived in
+             (("summary.json", f"summary-{steps}-steps.json"), ("eval", f"eval-{steps}-steps"))]  # fmt: skip
+    moves = [(source, target) for source, target in moves if source.exists()]
+    for source, target in moves:
+        if target.exists():
+            raise ValueError(f"resuming into {out}: {source} and {target} both exist; move one of them away")
+    for source, target in moves:
+        source.rename(target)
+    return [target for _, target in moves]
 
 
 def _restore_reward_stats(env: VecEnv, checkpoint: Path) -> None:
