@@ -143,6 +143,22 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(crash_weight=0.0).validate()
     with pytest.raises(ValueError, match="crash_weight > 0 and crash_window >= 1"):
         DaggerConfig(crash_window=0).validate()
+    with pytest.raises(ValueError, match="learning_rate_final must be > 0"):
+        DaggerConfig(learning_rate_final=0.0).validate()
+
+
+def test_the_learning_rate_falls_linearly_from_the_first_iteration_to_the_last() -> None:
+    """learning_rate_final: learning_rate at iteration 0, learning_rate_final at the last, a straight line between;
+    unset (or a one-iteration run), the rate stays learning_rate."""
+    from racebench.training.dagger import iteration_learning_rate
+
+    config = DaggerConfig(iterations=5, learning_rate=3e-4, learning_rate_final=1e-4)
+    rates = [iteration_learning_rate(config, k) for k in range(5)]
+    assert rates[0] == 3e-4 and rates[-1] == 1e-4  # the ends exactly
+    np.testing.assert_allclose(rates, [3e-4, 2.5e-4, 2e-4, 1.5e-4, 1e-4], rtol=1e-12)
+    assert iteration_learning_rate(config, 9) == 1e-4  # a resumption that runs on past the plan stays at the end
+    assert all(iteration_learning_rate(DaggerConfig(iterations=5), k) == 3e-4 for k in range(5))
+    assert iteration_learning_rate(DaggerConfig(iterations=1, learning_rate_final=1e-5), 0) == 3e-4
 
 
 def test_fit_samples_caps_each_fit_and_numbers_load_from_yaml(tmp_path: Path) -> None:
@@ -290,7 +306,9 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
     from racebench.training.dagger import RESUME_DIR
 
     # crash_weight: the loss weights are part of the saved dataset
-    config = DaggerConfig(iterations=2, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64, crash_weight=2.0)
+    # learning_rate_final: each iteration's step size is set from the schedule, also in a resumed part
+    config = DaggerConfig(iterations=2, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64, crash_weight=2.0,
+                          learning_rate_final=1e-4)  # fmt: skip
     whole = distill(config, tmp_path / "whole", eval_episodes=0)
     first = DaggerConfig(**{**config.__dict__, "iterations": 1})
     distill(first, tmp_path / "parts", eval_episodes=0)
@@ -298,9 +316,10 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
     resumed = distill(config, tmp_path / "parts", eval_episodes=0, resume=True)
     a, b = (SB3Agent(s["checkpoint"], trust_code=True).model.policy.state_dict() for s in (whole, resumed))
     assert all(torch.equal(a[k], b[k]) for k in a)  # bit for bit: same labels, same minibatches, same Adam state
-    columns = ["iteration", "beta", "episodes", "samples", "env_steps", "loss"]
+    columns = ["iteration", "beta", "episodes", "samples", "env_steps", "loss", "learning_rate"]
     rows = [pd.read_csv(tmp_path / d / "progress.csv")[columns] for d in ("whole", "parts")]
     pd.testing.assert_frame_equal(*rows)
+    assert rows[0]["learning_rate"].tolist() == [3e-4, 1e-4]
     assert not list((tmp_path / "parts").glob(f"{RESUME_DIR}.*"))  # no partial or old state left behind
 
     with pytest.raises(ValueError, match="epochs=1, not 2"):  # another setting: not the same run

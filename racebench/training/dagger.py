@@ -83,6 +83,10 @@ class DaggerConfig:
     fit_samples: int | None = None
     batch_size: int = 256
     learning_rate: float = 3e-4
+    # The fit's learning rate falls linearly over the iterations, from ``learning_rate`` at the first to this at the
+    # last (None: constant). Why: late in a run the student swings from one iteration to the next by up to 20 of 100
+    # laps (keep_iterations below); smaller steps as the aggregate stops changing much damp that optimiser noise.
+    learning_rate_final: float | None = None
     max_samples: int = 250_000  # aggregate capacity; the oldest samples are overwritten beyond it
     gate_shift: float = 0.3  # training scenes: gates shifted ±m, as in RL training (evaluation: none)
     # their vertical shift, ±m (None: gate_shift; the paper trains with ±1 m on x/y and ±0.3 m on z)
@@ -170,6 +174,10 @@ class DaggerConfig:
             (0.0 <= self.beta_decay <= 1.0, "beta_decay must be in [0, 1]"),
             (self.epochs >= 1 and self.batch_size >= 1, "epochs and batch_size must be >= 1"),
             (self.learning_rate > 0, "learning_rate must be > 0"),
+            (
+                self.learning_rate_final is None or self.learning_rate_final > 0,
+                "learning_rate_final must be > 0 (or null: a constant learning_rate)",
+            ),
             (self.max_samples >= self.batch_size, "max_samples must be >= batch_size"),
             (
                 self.fit_samples is None or self.fit_samples >= self.batch_size,
@@ -634,6 +642,15 @@ def pass_orders(items: int, epochs: int, cap: int | None, rng: np.random.Generat
         yield order
 
 
+def iteration_learning_rate(config: DaggerConfig, iteration: int) -> float:
+    """The fit's learning rate at ``iteration``: ``learning_rate``, or with ``learning_rate_final`` set the linear
+    ramp from ``learning_rate`` (iteration 0) to ``learning_rate_final`` (iteration ``iterations - 1``)."""
+    if config.learning_rate_final is None or config.iterations == 1:
+        return config.learning_rate
+    fraction = min(iteration, config.iterations - 1) / (config.iterations - 1)
+    return (1.0 - fraction) * config.learning_rate + fraction * config.learning_rate_final
+
+
 def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng: np.random.Generator) -> float:
     """``config.epochs`` passes of minibatch MSE regression over the dataset, cut at ``config.fit_samples``
     samples (a recurrent student's: ``fit_samples // sequence_length`` chunks); returns the last pass's loss.
@@ -831,13 +848,16 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
                         config.crash_weight, config.crash_window)  # fmt: skip
         torch.set_num_threads(config.update_threads)
         collected = time.perf_counter()
+        learning_rate = iteration_learning_rate(config, k)
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate
         loss = fit(policy, dataset, config, optimizer, rng)
         # where an iteration's time goes: flying (teacher, student, envs) against fitting (grows with the aggregate)
         flown["collect_s"], flown["fit_s"] = round(collected - tick, 1), round(time.perf_counter() - collected, 1)
         # env_steps: every step flown so far (samples, the aggregate's size, stops growing at max_samples)
         flown["env_steps"] = flown.pop("steps") + (int(rows[-1].get("env_steps", rows[-1]["samples"])) if rows else 0)
         rows.append({"iteration": k, "beta": beta, **flown, "samples": dataset.size, "loss": loss,
-                     "wall_s": round(time.perf_counter() - started, 1)})  # fmt: skip
+                     "learning_rate": learning_rate, "wall_s": round(time.perf_counter() - started, 1)})  # fmt: skip
         atomic_write(out / "progress.csv", pd.DataFrame(rows).to_csv(index=False))
         # The student after every iteration, so a killed run leaves its latest policy behind.
         policy_model.save(out / f"{config.name}-{config.track}.zip")
