@@ -27,7 +27,7 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=60_000)
     parser.add_argument("--batch", type=int, nargs="+", default=[256, 1024])
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--bf16", action="store_true", help="fit_precision bfloat16 (bf16 autocast), whatever the config says")
+    parser.add_argument("--bf16", action="store_true", help="fit_precision bfloat16 (bf16 autocast)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     config = DaggerConfig.from_yaml(args.config)
