@@ -27,12 +27,11 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=60_000)
     parser.add_argument("--batch", type=int, nargs="+", default=[256, 1024])
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--bf16", action="store_true", help="fit_precision bfloat16 (bf16 autocast)")
+    parser.add_argument("--bf16", action="store_true", help="fit under torch.autocast('cpu', dtype=torch.bfloat16)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     config = DaggerConfig.from_yaml(args.config)
     config.n_envs, config.epochs = 1, 1
-    config.fit_precision = "bfloat16" if args.bf16 else config.fit_precision
     made = make_training_envs(config)
     policy = make_student(made[0], config.seed, config.student).policy
     size = made[0].unwrapped.camera.size
@@ -48,9 +47,10 @@ def main() -> None:
     for batch in args.batch:
         config.batch_size = batch
         started = time.perf_counter()
-        fit(policy, dataset, config, optimizer, rng)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
+            fit(policy, dataset, config, optimizer, rng)
         seconds = time.perf_counter() - started
-        label = config.fit_precision
+        label = "bf16" if args.bf16 else "fp32"
         rate = args.samples / seconds
         print(f"batch {batch} ({label}, {args.threads} threads): {rate:,.0f} samples/s ({seconds:.1f} s)")
     for m in made:

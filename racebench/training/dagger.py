@@ -59,7 +59,6 @@ TEACHERS: tuple[str, ...] = ("planner-fast", "planner")  # privileged built-ins 
 # on that counter) and below the evaluation seeds.
 VALIDATION_SEED_BASE = 800_000
 FINAL_STUDENTS: tuple[str, ...] = ("last", "average", "best")  # DaggerConfig.final_student: what the checkpoint is
-FIT_PRECISIONS: tuple[str, ...] = ("float32", "bfloat16")  # DaggerConfig.fit_precision
 
 
 @dataclass
@@ -83,11 +82,6 @@ class DaggerConfig:
     # fit's cost stops growing with the aggregate (a cut pass draws a uniform random subset of it)
     fit_samples: int | None = None
     batch_size: int = 256
-    # The fit's arithmetic: "float32", or "bfloat16" (forward and backward under torch.autocast on the CPU; the
-    # weights, the optimizer and the loss stay float32, and the student flies and is evaluated in float32).
-    # Why: fitting is ~80 % of a DAgger hour, and at batch 1024 bf16 fits 2.1x the samples/s of the shipped batch
-    # 256 in float32 on a CPU with native bf16 (baselines/profile_dagger_fit.py; emulated elsewhere, and slower).
-    fit_precision: str = "float32"
     learning_rate: float = 3e-4
     # The fit's learning rate falls linearly over the iterations, from ``learning_rate`` at the first to this at the
     # last (None: constant). Why: late in a run the student swings from one iteration to the next by up to 20 of 100
@@ -181,10 +175,6 @@ class DaggerConfig:
             (0.0 <= self.beta_decay <= 1.0, "beta_decay must be in [0, 1]"),
             (self.epochs >= 1 and self.batch_size >= 1, "epochs and batch_size must be >= 1"),
             (self.learning_rate > 0, "learning_rate must be > 0"),
-            (
-                self.fit_precision in FIT_PRECISIONS,
-                f"fit_precision must be one of {FIT_PRECISIONS}, got {self.fit_precision!r}",
-            ),
             (
                 self.learning_rate_final is None or self.learning_rate_final > 0,
                 "learning_rate_final must be > 0 (or null: a constant learning_rate)",
@@ -669,15 +659,8 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
     A recurrent student trains on chunks of ``config.sequence_length`` steps (``batch_size // sequence_length``
     chunks a minibatch), each unrolled from the state :func:`chunk_start_states` gave it; the loss averages
     the chunks' real steps (a short chunk's padding is masked). With ``config.crash_weight`` other than 1 the
-    loss is the mean weighted by each step's stored weight (:func:`collect`). With ``config.fit_precision``
-    "bfloat16" the whole fit runs under bf16 autocast (the weights and their updates stay float32).
+    loss is the mean weighted by each step's stored weight (:func:`collect`).
     """
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=config.fit_precision == "bfloat16"):
-        return _fit(policy, dataset, config, optimizer, rng)
-
-
-def _fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng: np.random.Generator) -> float:
-    """The body of :func:`fit`, in whatever autocast context the caller set."""
     policy.set_training_mode(True)
     losses: list[float] = []
     weighted = config.crash_weight != 1.0  # unweighted runs keep the plain mean (bit for bit as before)
