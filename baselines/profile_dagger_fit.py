@@ -6,7 +6,9 @@ under bf16 autocast.
 
 Fills an aggregate with ``--samples`` random steps (segments of 50-250 steps, uniform depth and state: the cost of a
 fit does not depend on the values) and times one pass of the config's student over it per batch size. A throughput
-probe only: the loss on random labels means nothing, and whether bf16 keeps a student's quality is not measured here.
+probe only: the loss on random labels means nothing. What a recipe learns per second on real data is
+``baselines/fit_recipes.py``'s to say: there bf16 diverges, and batch 1,024 is 1.25x cheaper, not the 1.5x measured
+here (``baselines/experiments/fit_recipes.txt``).
 """
 
 from __future__ import annotations
