@@ -345,6 +345,21 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
         assert np.all(data["weight"][:10] == 2.0) and len(data["weight"]) == 3 * 128
 
 
+def test_extending_a_finished_run_keeps_the_earlier_checkpoints_evaluation(tmp_path: Path) -> None:
+    """A finished run (checkpoint, summary.json, eval/) resumed to more iterations: the old summary and evaluation
+    move aside under their step count, the new checkpoint is evaluated into a fresh eval/ (before, the final
+    evaluation refused the old policy's records and no summary was written)."""
+    config = DaggerConfig(iterations=1, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64)
+    first = distill(config, tmp_path, eval_episodes=1)
+    longer = distill(DaggerConfig(**{**config.__dict__, "iterations": 2}), tmp_path, eval_episodes=1, resume=True)
+    assert json.loads((tmp_path / "summary-128-steps.json").read_text()) == first
+    assert (tmp_path / "eval-128-steps" / "episodes.csv").is_file()
+    assert json.loads((tmp_path / "summary.json").read_text()) == longer
+    assert longer["env_steps"] == 256 and longer["eval"]["n"] == 1
+    old, new = (pd.read_csv(tmp_path / d / "episodes.csv") for d in ("eval-128-steps", "eval"))
+    assert old["policy_sha256"].iloc[0] != new["policy_sha256"].iloc[0]  # each keyed to its own checkpoint
+
+
 def test_a_kill_inside_the_state_swap_resumes_from_the_state_it_left(tmp_path: Path) -> None:
     """Killed between moving resume/ aside and renaming resume.partial/ into place: either folder is found."""
     from racebench.training.dagger import RESUME_DIR, completed_iterations, load_resume_state

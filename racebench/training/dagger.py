@@ -837,8 +837,13 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     if saved is None:  # a fresh run: students another run kept in this folder must not become candidates
         shutil.rmtree(out / KEPT_DIR, ignore_errors=True)
     else:
+        from racebench.training.train import archive_finished_part
+
         restore_state(saved, policy_model, optimizer, dataset, rng)
         seeds, rows = saved["seeds"], saved["rows"]
+        # A finished run extended to more iterations: its summary.json and eval/ are the old checkpoint's. Moved
+        # aside (summary-<n>-steps.json, eval-<n>-steps/), they stay on record and the final evaluation can run.
+        archive_finished_part(out, int(rows[-1]["env_steps"]) if rows else 0)
         first, offset = saved["iteration"] + 1, float(rows[-1]["wall_s"]) if rows else 0.0
     started = time.perf_counter() - offset  # wall clock over the resumed parts
     for k in tqdm(range(first, config.iterations), desc="dagger", unit="it", initial=first, total=config.iterations):
