@@ -167,6 +167,31 @@ def test_paired_outcomes_counts_the_discordant_pairs_and_tests_them_exactly(tmp_
         module.main()
 
 
+def test_failure_overlap_finds_failures_piled_on_the_same_scenes(tmp_path, monkeypatch, capsys) -> None:
+    spec = importlib.util.spec_from_file_location("failure_overlap", ROOT / "baselines" / "failure_overlap.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    # Three agents, 20 scenes: all fail scenes 0-3 (so each finishes 16 of 20), the rest they all finish.
+    for name in ("a", "b", "c"):
+        (tmp_path / name).mkdir()
+        rows = [{"env_id": "RaceObs-S-v0", "seed": s, "success": s >= 4, "crash_reason": None if s >= 4 else "gate:2"}
+                for s in range(20)]  # fmt: skip
+        pd.DataFrame(rows).to_csv(tmp_path / name / "episodes.csv", index=False)
+    monkeypatch.setattr("sys.argv", ["failure_overlap", *(str(tmp_path / n) for n in "abc"), "--permutations", "500"])
+    module.main()
+    out = capsys.readouterr().out
+    assert "3 agents on 20 shared scenes (success 80 %, 80 %, 80 %)" in out
+    assert "scenes, observed:           16      0      0      4" in out
+    assert "failed by all 3: 4 scenes, seeds 0, 1, 2, 3; ended by {'gate': 12}" in out
+    assert "permutation p = 0.0020 (500 shuffles)" in out  # no shuffle piles them up as much: (0 + 1) / 501
+    # Independent failures (each agent fails other scenes): no evidence of overlap.
+    result = module.overlap(np.eye(20, 3, dtype=bool) == 0, 500, np.random.default_rng(0))
+    assert result["observed"].tolist() == [17, 3, 0, 0] and result["p"] == 1.0
+    monkeypatch.setattr("sys.argv", ["failure_overlap", str(tmp_path / "a")])
+    with pytest.raises(SystemExit, match="at least two evaluation folders"):
+        module.main()
+
+
 def test_selection_report_ranks_candidates_and_pairs_the_chosen_with_the_last(tmp_path, monkeypatch, capsys) -> None:
     spec = importlib.util.spec_from_file_location("selection_report", ROOT / "baselines" / "selection_report.py")
     module = importlib.util.module_from_spec(spec)
