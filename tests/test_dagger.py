@@ -307,8 +307,9 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
 
     # crash_weight: the loss weights are part of the saved dataset
     # learning_rate_final: each iteration's step size is set from the schedule, also in a resumed part
+    # replay_failed: the queue of failed scenes is part of the saved state
     config = DaggerConfig(iterations=2, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64, crash_weight=2.0,
-                          learning_rate_final=1e-4)  # fmt: skip
+                          learning_rate_final=1e-4, replay_failed=0.5)  # fmt: skip
     whole = distill(config, tmp_path / "whole", eval_episodes=0)
     first = DaggerConfig(**{**config.__dict__, "iterations": 1})
     distill(first, tmp_path / "parts", eval_episodes=0)
@@ -464,6 +465,42 @@ def test_the_steps_before_a_crash_weigh_crash_weight_in_the_loss() -> None:
     assert w.max() == 3.0 and w.min() == 1.0
     torch.testing.assert_close(weighted, (e * w).sum() / w.sum(), rtol=1e-5, atol=1e-7)
     torch.testing.assert_close(plain, e.mean(), rtol=1e-5, atol=1e-7)
+
+
+def test_failed_training_scenes_are_flown_again_with_probability_replay_failed() -> None:
+    """replay_failed: a failed episode queues its scene's seed; a new episode takes the last queued seed with that
+    probability (off the queue), else the next new seed. Off (0), seeds run consecutively as before."""
+    import gymnasium as gym
+
+    from racebench.training.dagger import collect, make_student, make_teacher
+
+    config = DaggerConfig(n_envs=2)
+    made = [gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast") for _ in range(2)]
+    envs, teachers = [m.unwrapped for m in made], [make_teacher(config) for _ in made]
+    policy = make_student(made[0], seed=0).policy  # untrained, flying alone (beta 0): every episode fails
+    flown: list[int] = []
+    for env in envs:
+        reset = env.reset_state
+        env.reset_state = lambda seed, reset=reset: (flown.append(seed), reset(seed=seed))[1]
+    seeds, failed = [0], []
+    stats = collect(envs, teachers, policy, beta=0.0, steps=1200, rng=np.random.default_rng(0), seeds=seeds,
+                    dataset=Dataset(2000, 64), replay_failed=0.7, failed=failed)  # fmt: skip
+    assert stats["episodes"] >= 10 and stats["success_rate"] == 0.0
+    new = [s for k, s in enumerate(flown) if s not in flown[:k]]
+    assert new == list(range(seeds[0]))  # new scenes in order; the counter only counts those
+    repeats = len(flown) - len(new)
+    assert stats["replayed"] == repeats and 0.4 * stats["episodes"] < repeats < stats["episodes"]
+    # The queue holds each failure not replayed yet: finished episodes minus replays taken off it.
+    assert len(failed) == stats["episodes"] - repeats and set(failed) <= set(flown)
+    flown.clear()
+    seeds, failed = [0], []
+    off = collect(envs, teachers, policy, beta=0.0, steps=400, rng=np.random.default_rng(0), seeds=seeds,
+                  dataset=Dataset(2000, 64), failed=failed)  # fmt: skip
+    assert flown == list(range(seeds[0])) and failed == [] and "replayed" not in off
+    for m in made:
+        m.close()
+    with pytest.raises(ValueError, match="replay_failed must be in"):
+        DaggerConfig(replay_failed=1.0).validate()
 
 
 def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_scenes(tmp_path: Path) -> None:

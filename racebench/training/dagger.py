@@ -116,6 +116,12 @@ class DaggerConfig:
     # on Circle; baselines/experiments/distill-crash-weight/), hence off by default.
     crash_weight: float = 1.0
     crash_window: int = 50  # steps (1 s at the 50 Hz control rate)
+    # Probability that an episode re-flies a training scene on which an earlier episode failed (the most recent such
+    # failure first; each failure queues its scene once), instead of a new scene; 0: every episode a new scene.
+    # Why: the students of different seeds fail the same evaluation scenes far beyond chance
+    # (baselines/experiments/failure_overlap.txt), so what limits them is in particular layouts, and flying the
+    # layouts a student fails again (as prioritised level replay does for RL) gathers labels where they are scarce.
+    replay_failed: float = 0.0
     # Keep the student of each of the last ``keep_iterations`` iterations (``iterations/`` in the run folder) with
     # their weight average; with ``select_episodes`` > 0 fly each on that many validation scenes (training
     # randomisation, seeds VALIDATION_SEED_BASE + i: disjoint from training and evaluation seeds). Why: with the
@@ -188,6 +194,7 @@ class DaggerConfig:
             (self.teacher in TEACHERS, f"teacher must be one of {TEACHERS}, got {self.teacher!r}"),
             (self.sequence_length >= 1, "sequence_length must be >= 1"),
             (self.crash_weight > 0.0 and self.crash_window >= 1, "need crash_weight > 0 and crash_window >= 1"),
+            (0.0 <= self.replay_failed < 1.0, "replay_failed must be in [0, 1)"),
             (self.gate_shift >= 0.0, "gate_shift must be >= 0 m"),
             (self.gate_shift_z is None or self.gate_shift_z >= 0.0, "gate_shift_z must be >= 0 m (or null)"),
             (0.0 < self.teacher_gate_clearance <= 0.5, "teacher_gate_clearance must be in (0, 0.5] m"),
@@ -402,6 +409,8 @@ def collect(
     dataset: Dataset,
     crash_weight: float = 1.0,
     crash_window: int = 50,
+    replay_failed: float = 0.0,
+    failed: list[int] | None = None,
 ) -> dict[str, float]:
     """Fly ``steps`` env steps with the beta-mixture of teacher and student; label every step with the teacher.
 
@@ -410,16 +419,27 @@ def collect(
     whoever acts, and is zeroed when its env starts an episode. Each episode is stored as one segment when it
     ends (an episode still flying at the end is stored as far as it got). Returns the episodes' success rate
     and mean length. The last ``crash_window`` steps of an episode that ended in a crash are stored with loss
-    weight ``crash_weight`` (the others with 1).
+    weight ``crash_weight`` (the others with 1). With ``replay_failed`` > 0, ``failed`` is the queue of training
+    scenes (seeds) whose episodes failed: each failed episode appends its seed, and each new episode re-flies the
+    last queued scene with probability ``replay_failed`` (taking it off the queue) instead of the next new seed.
     """
     caster = BatchDepthRenderer(envs[0].camera)
+    replaying = replay_failed > 0.0 and failed is not None
+    episode_seed = [0] * len(envs)
+    replayed = 0
     recurrent = is_recurrent(policy)
     hidden = torch.zeros(1, len(envs), policy.lstm_actor.hidden_size) if recurrent else None
     segments: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = [[] for _ in envs]
 
     def start(i: int) -> None:
-        envs[i].reset_state(seed=seeds[0])
-        seeds[0] += 1
+        nonlocal replayed
+        if replaying and failed and rng.random() < replay_failed:  # no draw at all when off: runs as before
+            episode_seed[i] = failed.pop()
+            replayed += 1
+        else:
+            episode_seed[i] = seeds[0]
+            seeds[0] += 1
+        envs[i].reset_state(seed=episode_seed[i])
         teachers[i].reset(env=envs[i], seed=None)
         if hidden is not None:
             hidden[:, i] = 0.0
@@ -449,6 +469,8 @@ def collect(
             lengths_now[i] += 1
             if terminated or truncated:
                 successes.append(bool(info["is_success"]))
+                if replaying and not info["is_success"]:
+                    failed.append(episode_seed[i])
                 lengths.append(int(lengths_now[i]))
                 lengths_now[i] = 0
                 store(i, crashed=info.get("crash_reason") is not None)
@@ -457,12 +479,15 @@ def collect(
         taken += len(envs)
     for i in range(len(envs)):
         store(i)
-    return {
+    stats = {
         "steps": taken,
         "episodes": len(successes),
         "success_rate": float(np.mean(successes)) if successes else float("nan"),
         "mean_length": float(np.mean(lengths)) if lengths else float("nan"),
     }
+    if replaying:
+        stats["replayed"] = replayed  # episodes that re-flew a failed scene
+    return stats
 
 
 def fly_student(envs: list[Any], policy: Any, seeds: list[int]) -> list[dict[str, Any]]:
@@ -711,14 +736,14 @@ KEPT_DIR = "iterations"  # in a run folder: the students kept for selection (Dag
 
 def save_resume_state(
     out: Path, iteration: int, student: Any, optimizer: Any, dataset: Dataset, rng: np.random.Generator,
-    seeds: list[int], rows: list[dict[str, Any]], config: DaggerConfig,
+    seeds: list[int], rows: list[dict[str, Any]], config: DaggerConfig, failed: list[int] | None = None,
 ) -> None:  # fmt: skip
     """Everything iteration ``iteration + 1`` needs, written beside the run and swapped in whole.
 
     The student (SB3 zip), the optimizer's state, the aggregate dataset, the numpy generator's state, the scene
-    seed counter and the progress rows. Episodes never span iterations (``collect`` starts every env afresh),
-    so nothing of the envs needs saving. The folder is written under another name and renamed into place, so a
-    kill leaves either the previous iteration's state or this one's.
+    seed counter, the queue of failed scenes to replay (``failed``) and the progress rows. Episodes never span
+    iterations (``collect`` starts every env afresh), so nothing of the envs needs saving. The folder is written
+    under another name and renamed into place, so a kill leaves either the previous iteration's state or this one's.
     """
 
     partial, final, old = out / f"{RESUME_DIR}.partial", out / RESUME_DIR, out / f"{RESUME_DIR}.old"
@@ -729,8 +754,8 @@ def save_resume_state(
     n = dataset.size
     np.savez(partial / "dataset.npz", state=dataset.state[:n], depth=dataset.depth[:n], action=dataset.action[:n],
              weight=dataset.weight[:n], starts=dataset.starts[:n], next=np.array(dataset.next))  # fmt: skip
-    state = {"iteration": iteration, "rng": rng.bit_generator.state, "seeds": seeds, "rows": rows,
-             "config": asdict(config)}  # fmt: skip
+    state = {"iteration": iteration, "rng": rng.bit_generator.state, "seeds": seeds, "failed": failed or [],
+             "rows": rows, "config": asdict(config)}  # fmt: skip
     (partial / "state.json").write_text(json.dumps(_json_safe(state), allow_nan=False))
     if final.exists():
         shutil.rmtree(old, ignore_errors=True)
@@ -832,6 +857,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.learning_rate)
     dataset = Dataset(config.max_samples, envs[0].camera.size)
     seeds = [config.seed * 1000]  # training seeds, far below the evaluation seeds
+    failed: list[int] = []  # training scenes queued for replay (DaggerConfig.replay_failed)
     rows: list[dict[str, Any]] = []
     first, offset = 0, 0.0
     if saved is None:  # a fresh run: students another run kept in this folder must not become candidates
@@ -841,6 +867,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
 
         restore_state(saved, policy_model, optimizer, dataset, rng)
         seeds, rows = saved["seeds"], saved["rows"]
+        failed = list(saved.get("failed", []))  # a state saved before replay existed queued none
         # A finished run extended to more iterations: its summary.json and eval/ are the old checkpoint's. Moved
         # aside (summary-<n>-steps.json, eval-<n>-steps/), they stay on record and the final evaluation can run.
         archive_finished_part(out, int(rows[-1]["env_steps"]) if rows else 0)
@@ -851,7 +878,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         torch.set_num_threads(1)
         tick = time.perf_counter()
         flown = collect(envs, teachers, policy, beta, config.steps_per_iteration, rng, seeds, dataset,
-                        config.crash_weight, config.crash_window)  # fmt: skip
+                        config.crash_weight, config.crash_window, config.replay_failed, failed)  # fmt: skip
         torch.set_num_threads(config.update_threads)
         collected = time.perf_counter()
         learning_rate = iteration_learning_rate(config, k)
@@ -870,7 +897,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         if k >= config.iterations - config.keep_iterations:
             (out / KEPT_DIR).mkdir(exist_ok=True)
             policy_model.save(out / KEPT_DIR / f"{config.name}-{config.track}-it{k:03d}.zip")
-        save_resume_state(out, k, policy_model, optimizer, dataset, rng, seeds, rows, config)
+        save_resume_state(out, k, policy_model, optimizer, dataset, rng, seeds, rows, config, failed)
     checkpoint = out / f"{config.name}-{config.track}.zip"
     selection = None
     try:
