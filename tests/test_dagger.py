@@ -468,8 +468,9 @@ def test_the_steps_before_a_crash_weigh_crash_weight_in_the_loss() -> None:
 
 
 def test_failed_training_scenes_are_flown_again_with_probability_replay_failed() -> None:
-    """replay_failed: a failed episode queues its scene's seed; a new episode takes the last queued seed with that
-    probability (off the queue), else the next new seed. Off (0), seeds run consecutively as before."""
+    """replay_failed: a failed episode on a new scene queues its seed; a new episode takes the last queued seed with
+    that probability (off the queue), else the next new seed; a replay is not queued again. Off (0), seeds run
+    consecutively as before."""
     import gymnasium as gym
 
     from racebench.training.dagger import collect, make_student, make_teacher
@@ -489,9 +490,11 @@ def test_failed_training_scenes_are_flown_again_with_probability_replay_failed()
     new = [s for k, s in enumerate(flown) if s not in flown[:k]]
     assert new == list(range(seeds[0]))  # new scenes in order; the counter only counts those
     repeats = len(flown) - len(new)
-    assert stats["replayed"] == repeats and 0.4 * stats["episodes"] < repeats < stats["episodes"]
-    # The queue holds each failure not replayed yet: finished episodes minus replays taken off it.
-    assert len(failed) == stats["episodes"] - repeats and set(failed) <= set(flown)
+    assert stats["replayed"] == repeats and 0.2 * stats["episodes"] < repeats
+    # Each scene is flown twice at most (a failed replay is not queued again). The queue holds the failed new scenes
+    # not replayed yet: every finished episode failed, and each of the 2 envs may leave one cut, unqueued, at the end.
+    assert max(flown.count(s) for s in flown) == 2 and set(failed) <= set(new)
+    assert len(new) - repeats - 2 <= len(failed) <= len(new) - repeats
     flown.clear()
     seeds, failed = [0], []
     off = collect(envs, teachers, policy, beta=0.0, steps=400, rng=np.random.default_rng(0), seeds=seeds,

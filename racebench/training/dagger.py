@@ -117,7 +117,8 @@ class DaggerConfig:
     crash_weight: float = 1.0
     crash_window: int = 50  # steps (1 s at the 50 Hz control rate)
     # Probability that an episode re-flies a training scene on which an earlier episode failed (the most recent such
-    # failure first; each failure queues its scene once), instead of a new scene; 0: every episode a new scene.
+    # failure first), instead of a new scene; 0: every episode a new scene. A scene is flown again once at most (a
+    # replay that fails does not queue it again), so scenes nobody can fly do not crowd out new ones.
     # Why: the students of different seeds fail the same evaluation scenes far beyond chance
     # (baselines/experiments/failure_overlap.txt), so what limits them is in particular layouts, and flying the
     # layouts a student fails again (as prioritised level replay does for RL) gathers labels where they are scarce.
@@ -420,12 +421,13 @@ def collect(
     ends (an episode still flying at the end is stored as far as it got). Returns the episodes' success rate
     and mean length. The last ``crash_window`` steps of an episode that ended in a crash are stored with loss
     weight ``crash_weight`` (the others with 1). With ``replay_failed`` > 0, ``failed`` is the queue of training
-    scenes (seeds) whose episodes failed: each failed episode appends its seed, and each new episode re-flies the
-    last queued scene with probability ``replay_failed`` (taking it off the queue) instead of the next new seed.
+    scenes (seeds) whose episodes failed: each failed episode on a new scene appends its seed, and each new episode
+    re-flies the last queued scene with probability ``replay_failed`` (taking it off the queue) instead of the next
+    new seed. A replayed scene is not queued again: each scene is flown twice at most.
     """
     caster = BatchDepthRenderer(envs[0].camera)
     replaying = replay_failed > 0.0 and failed is not None
-    episode_seed = [0] * len(envs)
+    episode_seed, is_replay = [0] * len(envs), [False] * len(envs)
     replayed = 0
     recurrent = is_recurrent(policy)
     hidden = torch.zeros(1, len(envs), policy.lstm_actor.hidden_size) if recurrent else None
@@ -433,7 +435,8 @@ def collect(
 
     def start(i: int) -> None:
         nonlocal replayed
-        if replaying and failed and rng.random() < replay_failed:  # no draw at all when off: runs as before
+        is_replay[i] = bool(replaying and failed and rng.random() < replay_failed)  # off: no draw, runs as before
+        if is_replay[i]:
             episode_seed[i] = failed.pop()
             replayed += 1
         else:
@@ -469,7 +472,7 @@ def collect(
             lengths_now[i] += 1
             if terminated or truncated:
                 successes.append(bool(info["is_success"]))
-                if replaying and not info["is_success"]:
+                if replaying and not info["is_success"] and not is_replay[i]:
                     failed.append(episode_seed[i])
                 lengths.append(int(lengths_now[i]))
                 lengths_now[i] = 0
