@@ -145,6 +145,10 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(crash_window=0).validate()
     with pytest.raises(ValueError, match="learning_rate_final must be > 0"):
         DaggerConfig(learning_rate_final=0.0).validate()
+    with pytest.raises(ValueError, match="weight_decay must be >= 0"):
+        DaggerConfig(weight_decay=-0.01).validate()
+    with pytest.raises(ValueError, match="augment_shift must be a whole number of pixels"):
+        DaggerConfig(augment_shift=9).validate()
 
 
 def test_the_learning_rate_falls_linearly_from_the_first_iteration_to_the_last() -> None:
@@ -287,6 +291,52 @@ def test_a_tiny_distillation_run(tmp_path: Path) -> None:
         np.testing.assert_allclose(evaluated, trained[0, 0].numpy().clip(-1, 1), atol=1e-6)
         obs, *_ = env.step(evaluated)
     env.close()
+
+
+def test_shift_depth_moves_each_image_by_its_own_whole_pixels_replicating_the_edge() -> None:
+    import torch
+
+    from racebench.training.dagger import shift_depth
+
+    image = torch.arange(25.0).view(1, 1, 5, 5)
+    depth = image.repeat(3, 1, 1, 1)
+    out = shift_depth(depth, np.array([[0, 0], [2, 0], [-1, 1]]))
+    torch.testing.assert_close(out[0], image[0])  # no shift: untouched
+    torch.testing.assert_close(out[1, 0, :, 2:], image[0, 0, :, :3])  # content two pixels right ...
+    torch.testing.assert_close(out[1, 0, :, :2], image[0, 0, :, :1].repeat(1, 2))  # ... the left column repeated
+    torch.testing.assert_close(out[2, 0, 1:, :4], image[0, 0, :4, 1:])  # one left and one down
+    torch.testing.assert_close(out[2, 0, 0, :4], image[0, 0, 0, 1:])  # the top row repeated
+    assert shift_depth(depth, np.zeros((3, 2), dtype=int)) is depth
+
+
+def test_weight_decay_and_depth_shifts_reach_the_fit(tmp_path: Path) -> None:
+    """weight_decay makes the fit's optimiser AdamW with that decay; augment_shift shifts every fitted chunk's depth
+    by a shift drawn from the run's generator, the same shift for all of a chunk's steps."""
+    import torch
+
+    from racebench.training import dagger
+
+    seen = []
+    original = dagger.shift_depth
+
+    def recording(depth, shifts):
+        seen.append(shifts)
+        return original(depth, shifts)
+
+    config = DaggerConfig(iterations=1, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64,
+                          sequence_length=16, weight_decay=0.05, augment_shift=2)  # fmt: skip
+    dagger_shift, dagger.shift_depth = dagger.shift_depth, recording
+    try:
+        summary = distill(config, tmp_path, eval_episodes=0)
+    finally:
+        dagger.shift_depth = dagger_shift
+    assert np.isfinite(summary["last"]["loss"])
+    saved = torch.load(tmp_path / "resume" / "optimizer.pt", weights_only=False)["optimizer"]
+    assert saved["param_groups"][0]["weight_decay"] == 0.05  # AdamW's decoupled decay (Adam has none set)
+    assert seen and all(s.shape[1] == 2 and np.abs(s).max() <= 2 for s in seen)
+    chunks = len(seen[0]) // 16
+    assert np.array_equal(seen[0], np.tile(seen[0][:chunks], (16, 1)))  # one shift per chunk, over its 16 steps
+    assert len({tuple(row) for s in seen for row in s}) > 1  # drawn, not fixed
 
 
 def test_a_feed_forward_student(tmp_path: Path) -> None:

@@ -272,6 +272,62 @@ def test_crash_visibility_counts_the_hit_obstacles_pixels_and_replays_crashes(tm
                      r"before 2", out)  # fmt: skip
 
 
+def test_crash_geometry_finds_an_obstacle_blind_agent_unmoved_by_what_it_hits(tmp_path, monkeypatch, capsys) -> None:
+    """`follow` ignores obstacles: flown again with the hit obstacle taken out of the scene, its flight is the same
+    to the step of the hit, and passes where the obstacle stood within the drone's collision radius."""
+    from racebench.evaluation import Evaluator
+
+    monkeypatch.syspath_prepend(str(ROOT / "baselines"))  # crash_geometry imports crash_visibility's replay
+    spec = importlib.util.spec_from_file_location("crash_geometry", ROOT / "baselines" / "crash_geometry.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    Evaluator("follow", ["RaceObs-S-v0"], episodes=4, out_dir=tmp_path / "eval").run(progress=False)
+    argv = ["crash_geometry", str(tmp_path / "eval"), "--agent", "follow", "--successes", "1", "--without-obstacle"]
+    monkeypatch.setattr("sys.argv", argv)
+    module.main()
+    out = capsys.readouterr().out
+    assert "RaceObs-S-v0): 2 obstacle crashes replayed of 2" in out
+    rows = [dict(kv.rsplit(" ", 1) for kv in line.split(", ")) for line in out.splitlines() if line.startswith("seed ")]
+    assert len(rows) == 2
+    for row in rows:
+        assert float(row["apart_at_hit"]) == 0.0 and float(row["blind_pass"]) <= 0.12
+        assert float(row["line_clearance"]) > 0.3  # the teacher's line keeps its berth from what follow hits
+    assert "finished laps (1), every step" in out
+
+
+def test_heldout_gap_scores_a_student_with_the_fits_own_loss(tmp_path, monkeypatch, capsys) -> None:
+    """The per-channel errors average to the fit's sequence loss over the same chunks, and a range of the saved
+    aggregate is those steps in order."""
+    from racebench.agents import SB3Agent
+    from racebench.training.dagger import DaggerConfig, chunk_start_states, distill, sequence_loss
+
+    spec = importlib.util.spec_from_file_location("heldout_gap", ROOT / "baselines" / "heldout_gap.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    run = tmp_path / "run"
+    config = DaggerConfig(name="tiny", iterations=1, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64)
+    distill(config, run, eval_episodes=0)
+    aggregate = run / "resume" / "dataset.npz"
+    whole, tail = module.load_range(str(aggregate), 0, 128), module.load_range(str(aggregate), 64, 128)
+    with np.load(aggregate) as saved:
+        np.testing.assert_array_equal(whole.depth, saved["depth"][:128])
+        np.testing.assert_array_equal(tail.action, saved["action"][64:128])
+    assert tail.starts[0]  # a range starts a sequence
+    policy = SB3Agent(str(run / "tiny-S.zip"), trust_code=True).model.policy
+    errors = module.channel_errors(policy, whole, 16)
+    first, count, position = whole.chunks(16)
+    states = chunk_start_states(policy, whole, (first, count, position))
+    with torch.no_grad():
+        loss = sequence_loss(policy, whole, first, count, states, 16)
+    assert errors.shape == (4,) and errors.mean() == pytest.approx(float(loss), rel=1e-5)
+    argv = ["heldout_gap", "--aggregate", str(aggregate), "--student", str(run / "tiny-S.zip"),
+            "--seen", "0", "64", "--unseen", "64", "128"]  # fmt: skip
+    monkeypatch.setattr("sys.argv", argv)
+    module.main()
+    out = capsys.readouterr().out
+    assert re.search(r"seen \(64 steps\): loss \d\.\d{4}", out) and "unseen (64 steps)" in out
+
+
 def test_extra_fit_continues_a_runs_fit_from_its_saved_state(tmp_path, monkeypatch) -> None:
     import hashlib
     import json
