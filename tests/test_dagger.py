@@ -149,6 +149,10 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(weight_decay=-0.01).validate()
     with pytest.raises(ValueError, match="augment_shift must be a whole number of pixels"):
         DaggerConfig(augment_shift=9).validate()
+    with pytest.raises(ValueError, match="path_aux_weight must be >= 0"):
+        DaggerConfig(path_aux_weight=-0.5).validate()
+    with pytest.raises(ValueError, match="path_aux_weight needs teacher planner-fast"):
+        DaggerConfig(teacher="planner", path_aux_weight=1.0).validate()
 
 
 def test_the_learning_rate_falls_linearly_from_the_first_iteration_to_the_last() -> None:
@@ -358,8 +362,10 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
     # crash_weight: the loss weights are part of the saved dataset
     # learning_rate_final: each iteration's step size is set from the schedule, also in a resumed part
     # replay_failed: the queue of failed scenes is part of the saved state
+    # path_aux_weight: the auxiliary head's weights and the stored targets are too (the head's gradient moves the
+    # student, so a head restored wrong would change the resumed student)
     config = DaggerConfig(iterations=2, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64, crash_weight=2.0,
-                          learning_rate_final=1e-4, replay_failed=0.5)  # fmt: skip
+                          learning_rate_final=1e-4, replay_failed=0.5, path_aux_weight=1.0)  # fmt: skip
     whole = distill(config, tmp_path / "whole", eval_episodes=0)
     first = DaggerConfig(**{**config.__dict__, "iterations": 1})
     distill(first, tmp_path / "parts", eval_episodes=0)
@@ -367,7 +373,7 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
     resumed = distill(config, tmp_path / "parts", eval_episodes=0, resume=True)
     a, b = (SB3Agent(s["checkpoint"], trust_code=True).model.policy.state_dict() for s in (whole, resumed))
     assert all(torch.equal(a[k], b[k]) for k in a)  # bit for bit: same labels, same minibatches, same Adam state
-    columns = ["iteration", "beta", "episodes", "samples", "env_steps", "loss", "learning_rate"]
+    columns = ["iteration", "beta", "episodes", "samples", "env_steps", "loss", "learning_rate", "aux_loss"]
     rows = [pd.read_csv(tmp_path / d / "progress.csv")[columns] for d in ("whole", "parts")]
     pd.testing.assert_frame_equal(*rows)
     assert rows[0]["learning_rate"].tolist() == [3e-4, 1e-4]
@@ -718,3 +724,118 @@ def test_a_run_shorter_than_keep_iterations_ships_its_one_kept_student(tmp_path:
     final = SB3Agent(summary["checkpoint"], trust_code=True).model.policy.state_dict()
     kept = SB3Agent(str(tmp_path / KEPT_DIR / "vision-dagger-S-it000.zip"), trust_code=True).model.policy.state_dict()
     assert all(torch.equal(final[k], kept[k]) for k in final)
+
+
+def test_line_ahead_is_the_teachers_line_ahead_in_the_body_frame() -> None:
+    """The auxiliary target: the points 1-4 m further along the teacher's line than the point it tracks, as vectors
+    from the drone in its body frame (a drone turned 90 degrees left sees a point ahead in the world on its right)."""
+    import gymnasium as gym
+    from scipy.spatial.transform import Rotation
+
+    from racebench.training.dagger import LINE_AHEAD_M, line_ahead, make_teacher
+
+    env = gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast")
+    env.reset(seed=3)
+    teacher = make_teacher(DaggerConfig(teacher_integral_gain=0.0))
+    teacher.reset(env=env.unwrapped, seed=None)
+    teacher.act()
+    drone = env.unwrapped.drone
+    target = line_ahead(teacher, drone).reshape(len(LINE_AHEAD_M), 3)
+    i = teacher._index
+    for k, metres in enumerate(LINE_AHEAD_M):
+        j = int(np.searchsorted(teacher.arc, teacher.arc[i] + metres))
+        assert teacher.arc[j] - teacher.arc[i] == pytest.approx(metres, abs=0.06)  # the line's 5 cm spacing
+        world = teacher.path[j] - drone.position
+        np.testing.assert_allclose(target[k], drone.rotation.T @ world, atol=1e-5)
+    # Along the first metre the line runs ahead of the drone, which starts facing it.
+    assert target[0, 0] > 0.8 and np.linalg.norm(target[0]) == pytest.approx(1.0, abs=0.3)
+
+    class Pose:  # the same position, yawed 90 degrees left: world +x is body -y
+        position = np.zeros(3)
+        rotation = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+
+    class Straight:  # a line along world +x
+        path = np.stack([np.arange(0.0, 6.0, 0.05), np.zeros(120), np.zeros(120)], axis=1)
+        arc = np.arange(0.0, 6.0, 0.05)
+        _index = 0
+
+    np.testing.assert_allclose(line_ahead(Straight, Pose).reshape(-1, 3), [[0, -m, 0] for m in LINE_AHEAD_M], atol=1e-9)
+    Straight._index = 110  # 0.5 m before the end: every point past it is its last point
+    np.testing.assert_allclose(line_ahead(Straight, Pose).reshape(-1, 3)[:, 1], -5.95)
+    teacher.path = None  # a failed plan: no line, no target
+    assert line_ahead(teacher, drone) is None
+    env.close()
+
+
+def test_the_path_head_shapes_the_student_and_stays_out_of_its_checkpoint(tmp_path: Path) -> None:
+    """path_aux_weight: every stored step has its target; the fit minimises the action loss plus the weight times the
+    head's loss (with weight 0 the student is bit for bit the one fitted without a head; with 1 it differs), the
+    progress has the auxiliary loss, and the checkpoint is the student's network alone."""
+    import gymnasium as gym
+    import torch
+
+    from racebench.training.dagger import fit, make_path_head, make_student, sequence_terms
+
+    config = DaggerConfig(iterations=1, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64,
+                          sequence_length=16, path_aux_weight=1.0)  # fmt: skip
+    summary = distill(config, tmp_path / "run", eval_episodes=0)
+    assert np.isfinite(pd.read_csv(tmp_path / "run" / "progress.csv")["aux_loss"]).all()
+    with np.load(tmp_path / "run" / "resume" / "dataset.npz") as data:
+        aux, mask = data["aux"], data["aux_mask"]
+    assert aux.shape == (128, 12) and mask.min() == 1.0  # the teacher had a line throughout
+    assert np.all(aux[:, 0::3] > 0.5)  # every point of the line ahead is in front of the drone
+    plain = SB3Agent(distill(DaggerConfig(**{**config.__dict__, "path_aux_weight": 0.0}), tmp_path / "plain",
+                             eval_episodes=0)["checkpoint"], trust_code=True)  # fmt: skip
+    student = SB3Agent(summary["checkpoint"], trust_code=True)
+    assert student.model.policy.state_dict().keys() == plain.model.policy.state_dict().keys()  # no head inside
+
+    env = gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast")
+    rng = np.random.default_rng(0)
+    data = Dataset(capacity=100, depth_size=64)
+    for n in (40, 40):
+        data.add_segment(rng.normal(size=(n, 17)).astype(np.float32), rng.random((n, 1, 64, 64), np.float32),
+                         rng.normal(size=(n, 4)).astype(np.float32), aux=rng.normal(size=(n, 12)).astype(np.float32),
+                         aux_mask=(np.arange(n) % 4 != 0).astype(np.float32))  # fmt: skip
+
+    def fitted(weight: float | None) -> dict:
+        torch.manual_seed(0)
+        policy = make_student(env, seed=0).policy
+        head = None if weight is None else make_path_head(policy.lstm_actor.hidden_size)
+        parameters = list(policy.parameters()) + ([] if head is None else list(head.parameters()))
+        run = DaggerConfig(epochs=1, batch_size=32, sequence_length=8, path_aux_weight=weight or 0.0)
+        losses: list[float] = []
+        fit(policy, data, run, torch.optim.Adam(parameters, lr=1e-3), np.random.default_rng(0), head, losses)
+        assert len(losses) == (0 if head is None else 3)  # one per minibatch of the pass: 10 chunks, 4 a batch
+        return policy.state_dict()
+
+    without, zero, one = fitted(None), fitted(0.0), fitted(1.0)
+    assert all(torch.equal(without[k], zero[k]) for k in without)
+    assert not all(torch.equal(without[k], one[k]) for k in without)
+
+    # The auxiliary loss is the mean squared error over the steps that have a target.
+    policy = make_student(env, seed=0).policy
+    head = make_path_head(policy.lstm_actor.hidden_size)
+    first, count, _ = data.chunks(8)
+    with torch.no_grad():
+        _, aux_loss = sequence_terms(policy, data, first[:3], count[:3], torch.zeros(3, 256), 8, path_head=head)
+        errors = []
+        for a, n in zip(first[:3], count[:3], strict=True):
+            steps = np.arange(a, a + n)
+            features = policy.lstm_actor(student_features_of(policy, data, steps)[:, None],
+                                         (torch.zeros(1, 1, 256), torch.zeros(1, 1, 256)))[0][:, 0]  # fmt: skip
+            error = ((head(features) - torch.from_numpy(data.aux[steps])) ** 2).mean(-1)
+            errors.append(error[torch.from_numpy(data.aux_mask[steps] > 0)])
+    torch.testing.assert_close(aux_loss, torch.cat(errors).mean(), rtol=1e-5, atol=1e-7)
+    with pytest.raises(ValueError, match="needs a recurrent student"):
+        fit(make_student(env, seed=0, student="vision-no-gru").policy, data, DaggerConfig(path_aux_weight=1.0),
+            torch.optim.Adam(head.parameters()), np.random.default_rng(0), head)  # fmt: skip
+    env.close()
+    with pytest.raises(ValueError, match="path_aux_weight reads a GRU's output"):
+        distill(DaggerConfig(**{**config.__dict__, "student": "vision-no-gru"}), tmp_path / "ff", eval_episodes=0)
+
+
+def student_features_of(policy, data: Dataset, steps: np.ndarray):
+    """The student's features of the stored steps ``steps``."""
+    from racebench.training.dagger import student_features
+
+    return student_features(policy, data.observations(steps))

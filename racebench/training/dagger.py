@@ -54,6 +54,10 @@ from racebench.planner import FastPlannerAgent, PlannerAgent
 from racebench.raycast import BatchDepthRenderer
 
 TEACHERS: tuple[str, ...] = ("planner-fast", "planner")  # privileged built-ins that can label every state
+# The auxiliary task's target (DaggerConfig.path_aux_weight): the teacher's line this far ahead along it, m, as
+# body-frame vectors from the drone in metres (a 0.2 m error on one axis then costs 0.04, the size of the action loss).
+LINE_AHEAD_M: tuple[float, ...] = (1.0, 2.0, 3.0, 4.0)
+PATH_AUX_SIZE = 3 * len(LINE_AHEAD_M)
 # Validation scene i (choosing among a run's kept students, DaggerConfig.select_episodes) has seed
 # VALIDATION_SEED_BASE + i: above the training seeds (seed * 1000 + a counter; DaggerConfig.validate checks a bound
 # on that counter) and below the evaluation seeds.
@@ -96,6 +100,13 @@ class DaggerConfig:
     # shift for every step of a chunk; edges replicated; 0: off). The augmentation of DrQ (Kostrikov et al. 2021), for
     # the same generalisation gap: a 1-2 px shift moves an obstacle's bearing by 1.4-2.8 degrees at 64 px and 90 deg.
     augment_shift: int = 0
+    # Loss weight of an auxiliary task (0: off): a head used only in training (not part of the checkpoint) reads the
+    # student's GRU output and predicts the teacher's line ahead, the points 1, 2, 3 and 4 m further along it in the
+    # body frame (m; :func:`line_ahead`), and each fit minimises the action MSE plus this times that prediction's
+    # MSE. Why: the students see the obstacles they hit but swerve about half as much as the line needs
+    # (baselines/crash_geometry.py); asking the depth features to carry the line's bend around what is in view is
+    # Loquercio et al. 2021's student output, here as a training signal for the paper's network. Recurrent students.
+    path_aux_weight: float = 0.0
     max_samples: int = 250_000  # aggregate capacity; the oldest samples are overwritten beyond it
     gate_shift: float = 0.3  # training scenes: gates shifted ±m, as in RL training (evaluation: none)
     # their vertical shift, ±m (None: gate_shift; the paper trains with ±1 m on x/y and ±0.3 m on z)
@@ -206,6 +217,11 @@ class DaggerConfig:
             (0.0 <= self.replay_failed < 1.0, "replay_failed must be in [0, 1)"),
             (self.weight_decay >= 0.0, "weight_decay must be >= 0"),
             (0 <= self.augment_shift <= 8, "augment_shift must be a whole number of pixels in [0, 8]"),
+            (self.path_aux_weight >= 0.0, "path_aux_weight must be >= 0"),
+            (
+                self.path_aux_weight == 0.0 or self.teacher == "planner-fast",
+                "path_aux_weight needs teacher planner-fast (the line it predicts is planner-fast's)",
+            ),
             (self.gate_shift >= 0.0, "gate_shift must be >= 0 m"),
             (self.gate_shift_z is None or self.gate_shift_z >= 0.0, "gate_shift_z must be >= 0 m (or null)"),
             (0.0 < self.teacher_gate_clearance <= 0.5, "teacher_gate_clearance must be in (0, 0.5] m"),
@@ -271,8 +287,8 @@ class DaggerConfig:
 
 
 class Dataset:
-    """The DAgger aggregate: observations (depth as uint8), the teacher's actions and each step's loss weight,
-    a ring buffer.
+    """The DAgger aggregate: observations (depth as uint8), the teacher's actions, each step's loss weight and its
+    auxiliary target (``aux``, with ``aux_mask`` 0 where there is none; :func:`line_ahead`), a ring buffer.
 
     Samples are stored one episode segment at a time (:meth:`add_segment`), so consecutive indices are
     consecutive steps of one episode except where ``starts`` marks a new segment. Index 0 and the oldest
@@ -284,21 +300,26 @@ class Dataset:
         self.depth = np.zeros((capacity, 1, depth_size, depth_size), dtype=np.uint8)
         self.action = np.zeros((capacity, 4), dtype=np.float32)
         self.weight = np.ones(capacity, dtype=np.float32)
+        self.aux = np.zeros((capacity, PATH_AUX_SIZE), dtype=np.float32)
+        self.aux_mask = np.zeros(capacity, dtype=np.float32)
         self.starts = np.zeros(capacity, dtype=bool)
         self.size = self.next = 0
 
     def add_segment(
-        self, state: np.ndarray, depth: np.ndarray, action: np.ndarray, weight: np.ndarray | None = None
+        self, state: np.ndarray, depth: np.ndarray, action: np.ndarray, weight: np.ndarray | None = None,
+        aux: np.ndarray | None = None, aux_mask: np.ndarray | None = None,
     ) -> None:  # fmt: skip
-        """Store consecutive steps of one episode (depth quantised to uint8; loss weights default 1); the first
-        starts a sequence."""
+        """Store consecutive steps of one episode (depth quantised to uint8; loss weights default 1; auxiliary
+        targets default none: mask 0); the first starts a sequence."""
         capacity = len(self.state)
         quantised = np.round(depth * 255.0).astype(np.uint8)
         weight = np.ones(len(state), dtype=np.float32) if weight is None else weight
+        aux = np.zeros((len(state), PATH_AUX_SIZE), dtype=np.float32) if aux is None else aux
+        aux_mask = np.zeros(len(state), dtype=np.float32) if aux_mask is None else aux_mask
         for k in range(len(state)):
             i = self.next
             self.state[i], self.depth[i], self.action[i] = state[k], quantised[k], action[k]
-            self.weight[i] = weight[k]
+            self.weight[i], self.aux[i], self.aux_mask[i] = weight[k], aux[k], aux_mask[k]
             self.starts[i] = k == 0 or i == 0
             self.next = (i + 1) % capacity
             self.size = min(self.size + 1, capacity)
@@ -409,6 +430,26 @@ def student_step(policy: Any, obs: list[dict], hidden: torch.Tensor | None) -> t
     return actions.numpy().clip(-1.0, 1.0), hidden
 
 
+def line_ahead(teacher: Any, drone: Any) -> np.ndarray | None:
+    """The auxiliary target at the drone's state: where the teacher's line is :data:`LINE_AHEAD_M` metres along it
+    beyond the point the teacher is tracking (its index, advanced by its last ``act``), as body-frame vectors from
+    the drone in metres, flattened ``(PATH_AUX_SIZE,)``; ``None`` while it has no line (a
+    failed plan: its fallback flies)."""
+    path = getattr(teacher, "path", None)
+    if path is None:
+        return None
+    arc = teacher.arc
+    ahead = np.searchsorted(arc, arc[teacher._index] + np.asarray(LINE_AHEAD_M))
+    points = path[np.minimum(ahead, len(path) - 1)]  # past the line's end: its last point
+    body = (points - drone.position) @ drone.rotation  # R^T v per row: world to body
+    return body.astype(np.float32).reshape(-1)
+
+
+def make_path_head(hidden_size: int) -> torch.nn.Module:
+    """The auxiliary head (training only): GRU output -> the line ahead (:func:`line_ahead`)."""
+    return torch.nn.Sequential(torch.nn.Linear(hidden_size, 128), torch.nn.ReLU(), torch.nn.Linear(128, PATH_AUX_SIZE))
+
+
 def collect(
     envs: list[Any],
     teachers: list[PlannerAgent | FastPlannerAgent],
@@ -422,6 +463,7 @@ def collect(
     crash_window: int = 50,
     replay_failed: float = 0.0,
     failed: list[int] | None = None,
+    path_aux: bool = False,
 ) -> dict[str, float]:
     """Fly ``steps`` env steps with the beta-mixture of teacher and student; label every step with the teacher.
 
@@ -433,7 +475,8 @@ def collect(
     weight ``crash_weight`` (the others with 1). With ``replay_failed`` > 0, ``failed`` is the queue of training
     scenes (seeds) whose episodes failed: each failed episode on a new scene appends its seed, and each new episode
     re-flies the last queued scene with probability ``replay_failed`` (taking it off the queue) instead of the next
-    new seed. A replayed scene is not queued again: each scene is flown twice at most.
+    new seed. A replayed scene is not queued again: each scene is flown twice at most. With ``path_aux`` every step
+    is also stored with its auxiliary target (:func:`line_ahead`; mask 0 where the teacher has no line).
     """
     caster = BatchDepthRenderer(envs[0].camera)
     replaying = replay_failed > 0.0 and failed is not None
@@ -441,7 +484,8 @@ def collect(
     replayed = 0
     recurrent = is_recurrent(policy)
     hidden = torch.zeros(1, len(envs), policy.lstm_actor.hidden_size) if recurrent else None
-    segments: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = [[] for _ in envs]
+    segments: list[list[tuple[np.ndarray, ...]]] = [[] for _ in envs]
+    no_line = np.zeros(PATH_AUX_SIZE, dtype=np.float32)
 
     def start(i: int) -> None:
         nonlocal replayed
@@ -462,7 +506,8 @@ def collect(
             weight = np.ones(len(segments[i]), dtype=np.float32)
             if crashed:
                 weight[-crash_window:] = crash_weight
-            dataset.add_segment(*(np.stack(column) for column in zip(*segments[i], strict=True)), weight)
+            columns = [np.stack(column) for column in zip(*segments[i], strict=True)]
+            dataset.add_segment(*columns[:3], weight, *columns[3:])  # with path_aux: targets and their mask
             segments[i] = []
 
     for i in range(len(envs)):
@@ -473,7 +518,11 @@ def collect(
     while taken < steps:
         teacher = np.array([t.act() for t in teachers], dtype=np.float32).clip(-1.0, 1.0)
         for i in range(len(envs)):
-            segments[i].append((obs[i]["state"], obs[i]["depth"], teacher[i]))
+            step = (obs[i]["state"], obs[i]["depth"], teacher[i])
+            if path_aux:
+                target = line_ahead(teachers[i], envs[i].drone)
+                step += (no_line, np.float32(0.0)) if target is None else (target, np.float32(1.0))
+            segments[i].append(step)
         student, hidden = student_step(policy, obs, hidden)
         use_teacher = rng.random(len(envs)) < beta
         actions = np.where(use_teacher[:, None], teacher, student)
@@ -658,19 +707,35 @@ def sequence_loss(
     state in ``states`` ``(chunks, H)``; a chunk shorter than ``length`` is padded and its padding masked.
     With ``weighted``, each step's error counts by its stored loss weight (a weighted mean); ``shifts``
     ``(chunks, 2)``: each chunk's depth images shifted by that many pixels (:func:`shift_depth`)."""
+    return sequence_terms(policy, dataset, first, count, states, length, weighted, shifts)[0]
+
+
+def sequence_terms(
+    policy: Any, dataset: Dataset, first: np.ndarray, count: np.ndarray, states: torch.Tensor, length: int,
+    weighted: bool = False, shifts: np.ndarray | None = None, path_head: torch.nn.Module | None = None,
+) -> tuple[torch.Tensor, torch.Tensor | None]:  # fmt: skip
+    """:func:`sequence_loss` and, with ``path_head``, the auxiliary loss: the mean squared error of the head's
+    prediction from each step's GRU output against the stored target, over the real steps that have one
+    (``aux_mask``; unweighted). Without a head the second term is ``None``."""
     offsets = np.arange(length)
     steps = np.minimum(first[:, None] + offsets, first[:, None] + count[:, None] - 1)
-    batch = dataset.batch(steps.T.reshape(-1))  # time-major: (length * chunks)
+    index = steps.T.reshape(-1)  # time-major: (length * chunks)
+    batch = dataset.batch(index)
     if shifts is not None:
         batch["depth"] = shift_depth(batch["depth"], np.tile(shifts, (length, 1)))
     target = batch.pop("action").view(length, len(first), -1)
     weight = batch.pop("weight").view(length, len(first), 1)
     features = student_features(policy, batch).view(length, len(first), -1)
-    actions, _ = student_unroll(policy, features, states[None])
-    mask = torch.from_numpy(offsets[:, None] < count[None, :]).unsqueeze(-1)
-    if weighted:
-        mask = mask * weight
-    return ((actions - target) ** 2 * mask).sum() / (mask.sum() * target.shape[-1])
+    actions, output = student_unroll(policy, features, states[None])
+    real = torch.from_numpy(offsets[:, None] < count[None, :]).unsqueeze(-1)
+    mask = real * weight if weighted else real
+    loss = ((actions - target) ** 2 * mask).sum() / (mask.sum() * target.shape[-1])
+    if path_head is None:
+        return loss, None
+    aux_target = torch.from_numpy(dataset.aux[index]).view(length, len(first), -1)
+    aux_mask = real * torch.from_numpy(dataset.aux_mask[index]).view(length, len(first), 1)
+    aux_error = ((path_head(output) - aux_target) ** 2 * aux_mask).sum()
+    return loss, aux_error / (aux_mask.sum().clamp(min=1.0) * aux_target.shape[-1])
 
 
 def shift_depth(depth: torch.Tensor, shifts: np.ndarray) -> torch.Tensor:
@@ -708,17 +773,28 @@ def iteration_learning_rate(config: DaggerConfig, iteration: int) -> float:
     return (1.0 - fraction) * config.learning_rate + fraction * config.learning_rate_final
 
 
-def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng: np.random.Generator) -> float:
+def fit(
+    policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng: np.random.Generator,
+    path_head: torch.nn.Module | None = None, aux_losses: list[float] | None = None,
+) -> float:  # fmt: skip
     """``config.epochs`` passes of minibatch MSE regression over the dataset, cut at ``config.fit_samples``
     samples (a recurrent student's: ``fit_samples // sequence_length`` chunks); returns the last pass's loss.
+
+    With ``path_head`` (a recurrent student, ``config.path_aux_weight`` > 0) each minibatch minimises the action loss
+    plus ``path_aux_weight`` times the auxiliary loss (:func:`sequence_terms`; the optimizer holds the head's
+    parameters too); the returned loss is the action part alone, and the last pass's auxiliary losses are appended
+    to ``aux_losses``.
 
     A recurrent student trains on chunks of ``config.sequence_length`` steps (``batch_size // sequence_length``
     chunks a minibatch), each unrolled from the state :func:`chunk_start_states` gave it; the loss averages
     the chunks' real steps (a short chunk's padding is masked). With ``config.crash_weight`` other than 1 the
     loss is the mean weighted by each step's stored weight (:func:`collect`).
     """
+    if path_head is not None and not is_recurrent(policy):
+        raise ValueError("dagger: the auxiliary path head reads a GRU's output: it needs a recurrent student")
     policy.set_training_mode(True)
     losses: list[float] = []
+    aux: list[float] = []
     weighted = config.crash_weight != 1.0  # unweighted runs keep the plain mean (bit for bit as before)
     if is_recurrent(policy):
         length = config.sequence_length
@@ -730,7 +806,7 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
         per_batch = max(1, config.batch_size // length)
         cap = None if config.fit_samples is None else config.fit_samples // length
         for order in pass_orders(len(first), config.epochs, cap, rng):
-            losses = []
+            losses, aux = [], []
             for a in range(0, len(order), per_batch):
                 pick = order[a : a + per_batch]
                 shifts = (  # drawn only when on, so runs without it keep their random stream
@@ -738,11 +814,18 @@ def fit(policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng
                     if config.augment_shift
                     else None
                 )
-                error = sequence_loss(policy, dataset, first[pick], count[pick], states[pick], length, weighted, shifts)
+                error, aux_error = sequence_terms(
+                    policy, dataset, first[pick], count[pick], states[pick], length, weighted, shifts, path_head
+                )  # fmt: skip
+                total = error if aux_error is None else error + config.path_aux_weight * aux_error
                 optimizer.zero_grad()
-                error.backward()
+                total.backward()
                 optimizer.step()
                 losses.append(error.item())
+                if aux_error is not None:
+                    aux.append(aux_error.item())
+        if aux_losses is not None:
+            aux_losses.extend(aux)
     else:
         for order in pass_orders(dataset.size, config.epochs, config.fit_samples, rng):
             if len(order) < config.batch_size:
@@ -776,10 +859,12 @@ KEPT_DIR = "iterations"  # in a run folder: the students kept for selection (Dag
 def save_resume_state(
     out: Path, iteration: int, student: Any, optimizer: Any, dataset: Dataset, rng: np.random.Generator,
     seeds: list[int], rows: list[dict[str, Any]], config: DaggerConfig, failed: list[int] | None = None,
+    path_head: torch.nn.Module | None = None,
 ) -> None:  # fmt: skip
     """Everything iteration ``iteration + 1`` needs, written beside the run and swapped in whole.
 
-    The student (SB3 zip), the optimizer's state, the aggregate dataset, the numpy generator's state, the scene
+    The student (SB3 zip), the optimizer's state (and the auxiliary head's weights, ``path_head``), the aggregate
+    dataset (with the auxiliary targets when there is a head), the numpy generator's state, the scene
     seed counter, the queue of failed scenes to replay (``failed``) and the progress rows. Episodes never span
     iterations (``collect`` starts every env afresh), so nothing of the envs needs saving. The folder is written
     under another name and renamed into place, so a kill leaves either the previous iteration's state or this one's.
@@ -789,10 +874,14 @@ def save_resume_state(
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
     student.save(partial / "student.zip")
-    torch.save({"optimizer": optimizer.state_dict(), "torch_rng": torch.get_rng_state()}, partial / "optimizer.pt")
+    extra = {"optimizer": optimizer.state_dict(), "torch_rng": torch.get_rng_state()}
+    if path_head is not None:
+        extra["path_head"] = path_head.state_dict()
+    torch.save(extra, partial / "optimizer.pt")
     n = dataset.size
+    aux = {"aux": dataset.aux[:n], "aux_mask": dataset.aux_mask[:n]} if path_head is not None else {}
     np.savez(partial / "dataset.npz", state=dataset.state[:n], depth=dataset.depth[:n], action=dataset.action[:n],
-             weight=dataset.weight[:n], starts=dataset.starts[:n], next=np.array(dataset.next))  # fmt: skip
+             weight=dataset.weight[:n], starts=dataset.starts[:n], next=np.array(dataset.next), **aux)  # fmt: skip
     state = {"iteration": iteration, "rng": rng.bit_generator.state, "seeds": seeds, "failed": failed or [],
              "rows": rows, "config": asdict(config)}  # fmt: skip
     (partial / "state.json").write_text(json.dumps(_json_safe(state), allow_nan=False))
@@ -847,21 +936,27 @@ def load_resume_state(out: Path, config: DaggerConfig) -> dict[str, Any] | None:
 
 
 def restore_state(
-    saved: dict[str, Any], student: Any, optimizer: Any, dataset: Dataset, rng: np.random.Generator
+    saved: dict[str, Any], student: Any, optimizer: Any, dataset: Dataset, rng: np.random.Generator,
+    path_head: torch.nn.Module | None = None,
 ) -> None:  # fmt: skip
-    """Load a state :func:`load_resume_state` returned into the student (SB3 model), its optimizer, the aggregate,
-    the numpy generator and torch's random state, as the run left them after its last finished iteration."""
+    """Load a state :func:`load_resume_state` returned into the student (SB3 model), its optimizer, the auxiliary
+    head, the aggregate, the numpy generator and torch's random state, as the run left them after its last finished
+    iteration."""
     folder = Path(saved["folder"])
     student.policy.load_state_dict(type(student).load(folder / "student.zip", device="cpu").policy.state_dict())
     extra = torch.load(folder / "optimizer.pt", weights_only=False)  # written by save_resume_state: trusted
     optimizer.load_state_dict(extra["optimizer"])
     torch.set_rng_state(extra["torch_rng"])
+    if path_head is not None:
+        path_head.load_state_dict(extra["path_head"])  # the config matched (load_resume_state): it was saved
     with np.load(folder / "dataset.npz") as data:
         n = len(data["state"])
         dataset.state[:n], dataset.depth[:n], dataset.action[:n] = data["state"], data["depth"], data["action"]
         dataset.starts[:n] = data["starts"]
         if "weight" in data:  # a state saved before loss weights existed: all 1
             dataset.weight[:n] = data["weight"]
+        if "aux" in data:
+            dataset.aux[:n], dataset.aux_mask[:n] = data["aux"], data["aux_mask"]
         dataset.size, dataset.next = n, int(data["next"])
     rng.bit_generator.state = saved["rng"]
 
@@ -893,10 +988,16 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     rng = np.random.default_rng(config.seed)
     policy_model = make_student(made[0], config.seed, config.student)
     policy = policy_model.policy
+    path_head = None
+    if config.path_aux_weight > 0:
+        if not is_recurrent(policy):
+            raise ValueError(f"dagger: path_aux_weight reads a GRU's output; student {config.student!r} has none")
+        path_head = make_path_head(policy.lstm_actor.hidden_size)  # after the student: its weights are unchanged
+    parameters = list(policy.parameters()) + ([] if path_head is None else list(path_head.parameters()))
     optimizer = (
-        torch.optim.AdamW(policy.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+        torch.optim.AdamW(parameters, lr=config.learning_rate, weight_decay=config.weight_decay)
         if config.weight_decay > 0
-        else torch.optim.Adam(policy.parameters(), lr=config.learning_rate)
+        else torch.optim.Adam(parameters, lr=config.learning_rate)
     )
     dataset = Dataset(config.max_samples, envs[0].camera.size)
     seeds = [config.seed * 1000]  # training seeds, far below the evaluation seeds
@@ -908,7 +1009,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     else:
         from racebench.training.train import archive_finished_part
 
-        restore_state(saved, policy_model, optimizer, dataset, rng)
+        restore_state(saved, policy_model, optimizer, dataset, rng, path_head)
         seeds, rows = saved["seeds"], saved["rows"]
         failed = list(saved.get("failed", []))  # a state saved before replay existed queued none
         # A finished run extended to more iterations: its summary.json and eval/ are the old checkpoint's. Moved
@@ -921,13 +1022,17 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         torch.set_num_threads(1)
         tick = time.perf_counter()
         flown = collect(envs, teachers, policy, beta, config.steps_per_iteration, rng, seeds, dataset,
-                        config.crash_weight, config.crash_window, config.replay_failed, failed)  # fmt: skip
+                        config.crash_weight, config.crash_window, config.replay_failed, failed,
+                        path_head is not None)  # fmt: skip
         torch.set_num_threads(config.update_threads)
         collected = time.perf_counter()
         learning_rate = iteration_learning_rate(config, k)
         for group in optimizer.param_groups:
             group["lr"] = learning_rate
-        loss = fit(policy, dataset, config, optimizer, rng)
+        aux_losses: list[float] = []
+        loss = fit(policy, dataset, config, optimizer, rng, path_head, aux_losses)
+        if path_head is not None:  # the auxiliary task's loss over the last pass (the line ahead, m²)
+            flown["aux_loss"] = float(np.mean(aux_losses)) if aux_losses else float("nan")
         # where an iteration's time goes: flying (teacher, student, envs) against fitting (grows with the aggregate)
         flown["collect_s"], flown["fit_s"] = round(collected - tick, 1), round(time.perf_counter() - collected, 1)
         # env_steps: every step flown so far (samples, the aggregate's size, stops growing at max_samples)
@@ -940,7 +1045,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         if k >= config.iterations - config.keep_iterations:
             (out / KEPT_DIR).mkdir(exist_ok=True)
             policy_model.save(out / KEPT_DIR / f"{config.name}-{config.track}-it{k:03d}.zip")
-        save_resume_state(out, k, policy_model, optimizer, dataset, rng, seeds, rows, config, failed)
+        save_resume_state(out, k, policy_model, optimizer, dataset, rng, seeds, rows, config, failed, path_head)
     checkpoint = out / f"{config.name}-{config.track}.zip"
     selection = None
     try:
