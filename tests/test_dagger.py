@@ -774,7 +774,7 @@ def test_the_path_head_shapes_the_student_and_stays_out_of_its_checkpoint(tmp_pa
     import gymnasium as gym
     import torch
 
-    from racebench.training.dagger import fit, make_path_head, make_student, sequence_terms
+    from racebench.training.dagger import fit, make_path_head, make_student, sequence_terms, student_features
 
     config = DaggerConfig(iterations=1, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64,
                           sequence_length=16, path_aux_weight=1.0)  # fmt: skip
@@ -821,7 +821,7 @@ def test_the_path_head_shapes_the_student_and_stays_out_of_its_checkpoint(tmp_pa
         errors = []
         for a, n in zip(first[:3], count[:3], strict=True):
             steps = np.arange(a, a + n)
-            features = policy.lstm_actor(student_features_of(policy, data, steps)[:, None],
+            features = policy.lstm_actor(student_features(policy, data.observations(steps))[:, None],
                                          (torch.zeros(1, 1, 256), torch.zeros(1, 1, 256)))[0][:, 0]  # fmt: skip
             error = ((head(features) - torch.from_numpy(data.aux[steps])) ** 2).mean(-1)
             errors.append(error[torch.from_numpy(data.aux_mask[steps] > 0)])
@@ -832,10 +832,3 @@ def test_the_path_head_shapes_the_student_and_stays_out_of_its_checkpoint(tmp_pa
     env.close()
     with pytest.raises(ValueError, match="path_aux_weight reads a GRU's output"):
         distill(DaggerConfig(**{**config.__dict__, "student": "vision-no-gru"}), tmp_path / "ff", eval_episodes=0)
-
-
-def student_features_of(policy, data: Dataset, steps: np.ndarray):
-    """The student's features of the stored steps ``steps``."""
-    from racebench.training.dagger import student_features
-
-    return student_features(policy, data.observations(steps))
