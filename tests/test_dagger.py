@@ -767,6 +767,60 @@ def test_line_ahead_is_the_teachers_line_ahead_in_the_body_frame() -> None:
     env.close()
 
 
+def test_clearance_ahead_is_the_free_distance_at_the_probes() -> None:
+    """The "clearance" target: the distance from each body-frame probe ahead of the drone to the nearest surface,
+    capped. A 0.3 m pole 2 m ahead of a drone yawed 90 degrees left (world +y is its forward): the centre probe 2 m
+    ahead is inside it (0), those 1 and 3 m ahead are 0.7 m from it, and so on by hand; 10 m back, every probe is
+    at the cap."""
+    from scipy.spatial.transform import Rotation
+
+    from racebench.scene import Obstacle, Scene
+    from racebench.track import load_track
+    from racebench.training.dagger import CLEARANCE_CAP_M, CLEARANCE_PROBES, aux_target, clearance_ahead
+
+    track = load_track("S")
+    pole = Obstacle("cylinder", np.array([0.0, 2.0, 2.0]), (0.3, 4.0))
+    scene = Scene(track, (), (pole,), np.zeros(3), 0.0, np.full(3, -20.0), np.full(3, 20.0))
+
+    class Pose:  # at 1 m height, yawed 90 degrees left: body +x is world +y, body +y (left) is world -x
+        position = np.array([0.0, 0.0, 1.0])
+        rotation = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+
+    target = clearance_ahead(scene, Pose).reshape(4, 3)  # rows 1-4 m ahead; columns 0.8 m left, centre, right
+    assert CLEARANCE_PROBES.shape == (12, 3) and target.dtype == np.float32
+    expected = np.array([[np.hypot(1.0, 0.8) - 0.3, 1.0 - 0.3, np.hypot(1.0, 0.8) - 0.3],
+                         [0.8 - 0.3, 0.0, 0.8 - 0.3],  # the centre probe is inside the pole: 0
+                         [np.hypot(1.0, 0.8) - 0.3, 1.0 - 0.3, np.hypot(1.0, 0.8) - 0.3],
+                         [np.hypot(2.0, 0.8) - 0.3, 2.0 - 0.3, np.hypot(2.0, 0.8) - 0.3]])  # fmt: skip
+    np.testing.assert_allclose(target, np.minimum(expected, CLEARANCE_CAP_M), atol=1e-5)
+    Pose.position = np.array([0.0, -10.0, 1.0])  # 10 m back: every probe is farther than the cap
+    np.testing.assert_array_equal(clearance_ahead(scene, Pose), np.full(12, CLEARANCE_CAP_M, dtype=np.float32))
+
+    class Env:  # aux_target reads the env's scene and drone, not the teacher
+        drone = Pose
+
+    Env.scene = scene
+    np.testing.assert_array_equal(aux_target("clearance", None, Env), clearance_ahead(scene, Pose))
+
+
+def test_the_clearance_task_stores_its_targets(tmp_path: Path) -> None:
+    """aux_task "clearance": every collected step is stored with the clearance at its state, mask 1 throughout (any
+    teacher), and the progress has the auxiliary loss; an unknown task is refused by name."""
+    from racebench.training.dagger import CLEARANCE_CAP_M
+
+    with pytest.raises(ValueError, match="aux_task must be one of"):
+        DaggerConfig(aux_task="obstacles").validate()
+    DaggerConfig(teacher="planner", path_aux_weight=1.0, aux_task="clearance").validate()  # needs no teacher's line
+    config = DaggerConfig(iterations=1, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64,
+                          sequence_length=16, path_aux_weight=1.0, aux_task="clearance")  # fmt: skip
+    distill(config, tmp_path / "run", eval_episodes=0)
+    assert np.isfinite(pd.read_csv(tmp_path / "run" / "progress.csv")["aux_loss"]).all()
+    with np.load(tmp_path / "run" / "resume" / "dataset.npz") as data:
+        aux, mask = data["aux"], data["aux_mask"]
+    assert aux.shape == (128, 12) and mask.min() == 1.0
+    assert aux.min() >= 0.0 and aux.max() <= CLEARANCE_CAP_M and aux.min() < CLEARANCE_CAP_M  # a gate is in reach
+
+
 def test_the_path_head_shapes_the_student_and_stays_out_of_its_checkpoint(tmp_path: Path) -> None:
     """path_aux_weight: every stored step has its target; the fit minimises the action loss plus the weight times the
     head's loss (with weight 0 the student is bit for bit the one fitted without a head; with 1 it differs), the

@@ -58,6 +58,14 @@ TEACHERS: tuple[str, ...] = ("planner-fast", "planner")  # privileged built-ins 
 # body-frame vectors from the drone in metres (a 0.2 m error on one axis then costs 0.04, the size of the action loss).
 LINE_AHEAD_M: tuple[float, ...] = (1.0, 2.0, 3.0, 4.0)
 PATH_AUX_SIZE = 3 * len(LINE_AHEAD_M)
+# The other auxiliary target (DaggerConfig.aux_task "clearance"): the free distance (m, to the nearest obstacle or gate
+# bar, capped at CLEARANCE_CAP_M) at these body-frame points ahead of the drone, a 4 x 3 grid at 1-4 m ahead and 0.8 m
+# left, centre and right: what depth alone can tell, and what decides a swerve's side and size. Same size as the line.
+CLEARANCE_PROBES: np.ndarray = np.array(
+    [(x, y, 0.0) for x in (1.0, 2.0, 3.0, 4.0) for y in (0.8, 0.0, -0.8)], dtype=np.float64
+)
+CLEARANCE_CAP_M = 2.0
+AUX_TASKS: tuple[str, ...] = ("line", "clearance")
 # Validation scene i (choosing among a run's kept students, DaggerConfig.select_episodes) has seed
 # VALIDATION_SEED_BASE + i: above the training seeds (seed * 1000 + a counter; DaggerConfig.validate checks a bound
 # on that counter) and below the evaluation seeds.
@@ -107,6 +115,10 @@ class DaggerConfig:
     # (baselines/crash_geometry.py); asking the depth features to carry the line's bend around what is in view is
     # Loquercio et al. 2021's student output, here as a training signal for the paper's network. Recurrent students.
     path_aux_weight: float = 0.0
+    # What that head predicts (its weight is path_aux_weight, named for the first task): "line", the teacher's line
+    # ahead (above); "clearance", the free distance at 12 points ahead of the drone (:func:`clearance_ahead`), which
+    # only the depth image can tell the student, where the line mostly follows from the gates in the state vector.
+    aux_task: str = "line"
     max_samples: int = 250_000  # aggregate capacity; the oldest samples are overwritten beyond it
     gate_shift: float = 0.3  # training scenes: gates shifted ±m, as in RL training (evaluation: none)
     # their vertical shift, ±m (None: gate_shift; the paper trains with ±1 m on x/y and ±0.3 m on z)
@@ -218,8 +230,9 @@ class DaggerConfig:
             (self.weight_decay >= 0.0, "weight_decay must be >= 0"),
             (0 <= self.augment_shift <= 8, "augment_shift must be a whole number of pixels in [0, 8]"),
             (self.path_aux_weight >= 0.0, "path_aux_weight must be >= 0"),
+            (self.aux_task in AUX_TASKS, f"aux_task must be one of {AUX_TASKS}, got {self.aux_task!r}"),
             (
-                self.path_aux_weight == 0.0 or self.teacher == "planner-fast",
+                self.path_aux_weight == 0.0 or self.aux_task != "line" or self.teacher == "planner-fast",
                 "path_aux_weight needs teacher planner-fast (the line it predicts is planner-fast's)",
             ),
             (self.gate_shift >= 0.0, "gate_shift must be >= 0 m"),
@@ -445,8 +458,24 @@ def line_ahead(teacher: Any, drone: Any) -> np.ndarray | None:
     return body.astype(np.float32).reshape(-1)
 
 
+def clearance_ahead(scene: Any, drone: Any) -> np.ndarray:
+    """The "clearance" auxiliary target at the drone's state: the distance from each of :data:`CLEARANCE_PROBES`
+    (body-frame points ahead of the drone, placed in the world by its pose) to the nearest obstacle or gate bar of
+    ``scene`` (:meth:`racebench.scene.Scene.distance`), capped at :data:`CLEARANCE_CAP_M`, ``(PATH_AUX_SIZE,)``."""
+    points = drone.position + CLEARANCE_PROBES @ drone.rotation.T  # R p per row: body to world
+    return np.minimum(scene.distance(points), CLEARANCE_CAP_M).astype(np.float32)
+
+
+def aux_target(task: str, teacher: Any, env: Any) -> np.ndarray | None:
+    """The auxiliary target of ``task`` (:data:`AUX_TASKS`) at ``env``'s current state: :func:`line_ahead` of the
+    teacher's line, or :func:`clearance_ahead` of the env's scene."""
+    if task == "line":
+        return line_ahead(teacher, env.drone)
+    return clearance_ahead(env.scene, env.drone)
+
+
 def make_path_head(hidden_size: int) -> torch.nn.Module:
-    """The auxiliary head (training only): GRU output -> the line ahead (:func:`line_ahead`)."""
+    """The auxiliary head (training only): GRU output -> the auxiliary target (:func:`aux_target`)."""
     return torch.nn.Sequential(torch.nn.Linear(hidden_size, 128), torch.nn.ReLU(), torch.nn.Linear(128, PATH_AUX_SIZE))
 
 
@@ -463,7 +492,7 @@ def collect(
     crash_window: int = 50,
     replay_failed: float = 0.0,
     failed: list[int] | None = None,
-    path_aux: bool = False,
+    aux_task: str | None = None,
 ) -> dict[str, float]:
     """Fly ``steps`` env steps with the beta-mixture of teacher and student; label every step with the teacher.
 
@@ -475,8 +504,9 @@ def collect(
     weight ``crash_weight`` (the others with 1). With ``replay_failed`` > 0, ``failed`` is the queue of training
     scenes (seeds) whose episodes failed: each failed episode on a new scene appends its seed, and each new episode
     re-flies the last queued scene with probability ``replay_failed`` (taking it off the queue) instead of the next
-    new seed. A replayed scene is not queued again: each scene is flown twice at most. With ``path_aux`` every step
-    is also stored with its auxiliary target (:func:`line_ahead`; mask 0 where the teacher has no line).
+    new seed. A replayed scene is not queued again: each scene is flown twice at most. With ``aux_task`` (one of
+    :data:`AUX_TASKS`) every step is also stored with its auxiliary target (:func:`aux_target`; mask 0 where there
+    is none: the teacher has no line).
     """
     caster = BatchDepthRenderer(envs[0].camera)
     replaying = replay_failed > 0.0 and failed is not None
@@ -507,7 +537,7 @@ def collect(
             if crashed:
                 weight[-crash_window:] = crash_weight
             columns = [np.stack(column) for column in zip(*segments[i], strict=True)]
-            dataset.add_segment(*columns[:3], weight, *columns[3:])  # with path_aux: targets and their mask
+            dataset.add_segment(*columns[:3], weight, *columns[3:])  # with aux_task: targets and their mask
             segments[i] = []
 
     for i in range(len(envs)):
@@ -519,8 +549,8 @@ def collect(
         teacher = np.array([t.act() for t in teachers], dtype=np.float32).clip(-1.0, 1.0)
         for i in range(len(envs)):
             step = (obs[i]["state"], obs[i]["depth"], teacher[i])
-            if path_aux:
-                target = line_ahead(teachers[i], envs[i].drone)
+            if aux_task is not None:
+                target = aux_target(aux_task, teachers[i], envs[i])
                 step += (no_line, np.float32(0.0)) if target is None else (target, np.float32(1.0))
             segments[i].append(step)
         student, hidden = student_step(policy, obs, hidden)
@@ -1023,7 +1053,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         tick = time.perf_counter()
         flown = collect(envs, teachers, policy, beta, config.steps_per_iteration, rng, seeds, dataset,
                         config.crash_weight, config.crash_window, config.replay_failed, failed,
-                        path_head is not None)  # fmt: skip
+                        config.aux_task if path_head is not None else None)  # fmt: skip
         torch.set_num_threads(config.update_threads)
         collected = time.perf_counter()
         learning_rate = iteration_learning_rate(config, k)
@@ -1031,7 +1061,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
             group["lr"] = learning_rate
         aux_losses: list[float] = []
         loss = fit(policy, dataset, config, optimizer, rng, path_head, aux_losses)
-        if path_head is not None:  # the auxiliary task's loss over the last pass (the line ahead, m²)
+        if path_head is not None:  # the auxiliary task's loss over the last pass (m²)
             flown["aux_loss"] = float(np.mean(aux_losses)) if aux_losses else float("nan")
         # where an iteration's time goes: flying (teacher, student, envs) against fitting (grows with the aggregate)
         flown["collect_s"], flown["fit_s"] = round(collected - tick, 1), round(time.perf_counter() - collected, 1)
