@@ -804,8 +804,9 @@ def test_clearance_ahead_is_the_free_distance_at_the_probes() -> None:
 
 
 def test_the_clearance_task_stores_its_targets(tmp_path: Path) -> None:
-    """aux_task "clearance": every collected step is stored with the clearance at its state, mask 1 throughout (any
-    teacher), and the progress has the auxiliary loss; an unknown task is refused by name."""
+    """aux_task "clearance": every collected step is stored with a target (mask 1 throughout: it needs no teacher's
+    line, so any teacher is accepted) within [0, the cap], and the progress has the auxiliary loss; an unknown task is
+    refused by name. (The target's geometry: the test above.)"""
     from racebench.training.dagger import CLEARANCE_CAP_M
 
     with pytest.raises(ValueError, match="aux_task must be one of"):
