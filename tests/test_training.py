@@ -18,7 +18,7 @@ from racebench.agents import AgentLoadError, SB3Agent
 from racebench.evaluation import EVAL_SEED_BASE
 from racebench.registration import CURRICULUM
 from racebench.sb3 import RaceSB3VecEnv
-from racebench.training.policies import LSTMShapedGRU, RecurrentGRUPolicy
+from racebench.training.policies import CNN_KINDS, LSTMShapedGRU, RecurrentGRUPolicy, depth_cnn
 from racebench.training.train import BASELINES as BASELINE_NAMES
 from racebench.training.train import (
     CurriculumCallback,
@@ -395,6 +395,48 @@ def test_builtin_baseline_names_resolve_and_unknown_ones_are_named() -> None:
     assert {load_config(name).name for name in BASELINE_NAMES} == set(BASELINE_NAMES)
     with pytest.raises(ValueError, match="neither a built-in baseline"):
         TrainConfig.from_yaml("vision-ppo-typo")
+
+
+def _grids_and_multiply_adds(net: torch.nn.Sequential, size: int) -> tuple[list[int], int]:
+    """Each conv's output grid side and the multiply-adds of the convs and linear layers, by a forward pass."""
+    x, grids, macs = torch.zeros(1, 1, size, size), [], 0
+    for layer in net:
+        y = layer(x)
+        if isinstance(layer, torch.nn.Conv2d):
+            grids.append(int(y.shape[-1]))
+            macs += y.numel() * layer.in_channels * layer.kernel_size[0] * layer.kernel_size[1]
+        elif isinstance(layer, torch.nn.Linear):
+            macs += layer.in_features * layer.out_features
+        x = y
+    return grids, macs
+
+
+@pytest.mark.parametrize(
+    "kind, grids, macs_millions",
+    [("paper", [64, 32, 16], 7.9), ("strided", [15, 6, 4], 0.74), ("fine", [30, 14, 6], 2.4)],
+)
+def test_depth_cnns_have_the_documented_grids_and_cost(kind: str, grids: list[int], macs_millions: float) -> None:
+    """Each kind's conv grids on a 64x64 image and its multiply-adds per image, as depth_cnn's docstring states."""
+    assert kind in CNN_KINDS
+    net = depth_cnn(kind, 64, 128)
+    found_grids, macs = _grids_and_multiply_adds(net, 64)
+    assert found_grids == grids
+    assert macs / 1e6 == pytest.approx(macs_millions, rel=0.05)
+    assert net(torch.rand(3, 1, 64, 64)).shape == (3, 128)
+    with pytest.raises(ValueError, match="cnn must be one of"):
+        depth_cnn("coarse", 64, 128)
+
+
+def test_a_fine_cnn_policy_trains_saves_and_reloads_for_evaluation(tmp_path: Path) -> None:
+    """A student with the fine CNN (distill-fine-cnn's) goes through a checkpoint as the evaluator loads it."""
+    config = small(TrainConfig.from_yaml(BASELINES[0].parent / "vision-ppo.yaml"), cnn="fine")
+    result = train(config, "S", steps=64, seed=0, out=tmp_path, eval_episodes=0)
+    agent = SB3Agent(result["checkpoint"], trust_code=True)
+    assert agent.model.policy.features_extractor.depth_net[0].stride == (2, 2)
+    agent.reset()
+    obs = {"state": np.zeros(17, np.float32), "depth": np.full((1, 64, 64), 0.5, np.float32)}
+    action = agent.act(obs)
+    assert action.shape == (4,) and np.all(np.isfinite(action))
 
 
 def test_checkpoint_save_load_same_actions(tmp_path: Path) -> None:
