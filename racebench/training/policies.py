@@ -21,6 +21,11 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
 CNN_KINDS: tuple[str, ...] = ("paper", "strided", "fine")
+# (out channels, kernel, stride) of each conv of the CNNs that down-sample with strides alone.
+_STRIDED_CONVS: dict[str, tuple[tuple[int, int, int], ...]] = {
+    "strided": ((16, 8, 4), (32, 4, 2), (32, 3, 1)),
+    "fine": ((16, 5, 2), (32, 4, 2), (32, 3, 2)),
+}
 
 
 def depth_cnn(kind: str, size: int, out_dim: int) -> nn.Sequential:
@@ -43,25 +48,16 @@ def depth_cnn(kind: str, size: int, out_dim: int) -> nn.Sequential:
             nn.Conv2d(32, 32, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
             nn.Flatten(), nn.Linear(32 * (size // 8) ** 2, out_dim), nn.ReLU(),
         )  # fmt: skip
-    if kind == "strided":
-        convs = nn.Sequential(
-            nn.Conv2d(1, 16, 8, stride=4), nn.ReLU(),
-            nn.Conv2d(16, 32, 4, stride=2), nn.ReLU(),
-            nn.Conv2d(32, 32, 3, stride=1), nn.ReLU(),
-            nn.Flatten(),
-        )  # fmt: skip
+    if kind in _STRIDED_CONVS:
+        layers: list[nn.Module] = []
+        in_channels = 1
+        for out_channels, kernel, stride in _STRIDED_CONVS[kind]:
+            layers += [nn.Conv2d(in_channels, out_channels, kernel, stride=stride), nn.ReLU()]
+            in_channels = out_channels
+        convs = nn.Sequential(*layers, nn.Flatten())
         with torch.no_grad():
             flat = convs(torch.zeros(1, 1, size, size)).shape[1]
-        return nn.Sequential(*convs, nn.Linear(flat, out_dim), nn.ReLU())
-    if kind == "fine":
-        convs = nn.Sequential(
-            nn.Conv2d(1, 16, 5, stride=2), nn.ReLU(),
-            nn.Conv2d(16, 32, 4, stride=2), nn.ReLU(),
-            nn.Conv2d(32, 32, 3, stride=2), nn.ReLU(),
-            nn.Flatten(),
-        )  # fmt: skip
-        with torch.no_grad():
-            flat = convs(torch.zeros(1, 1, size, size)).shape[1]
+        # One flat Sequential (convs, Flatten, Linear, ReLU): the state-dict keys that saved policies carry.
         return nn.Sequential(*convs, nn.Linear(flat, out_dim), nn.ReLU())
     raise ValueError(f"cnn must be one of {CNN_KINDS}, got {kind!r}")
 
