@@ -489,10 +489,20 @@ def load_records(out_dir: str | Path) -> pd.DataFrame:
 
 
 def summarize(episodes: pd.DataFrame) -> pd.DataFrame:
-    """One row per agent × env id: n, successes, success rate, 95 % Wilson interval, lap-time stats."""
+    """One row per agent × env id: n, successes, success rate, 95 % Wilson interval, lap-time stats.
+
+    Raises :class:`MixedResultsError` if one agent × env id holds episodes of more than one ``policy_sha256``.
+    """
     rows = []
     for (agent, env_id), group in episodes.groupby(["agent", "env_id"], sort=True):
         n = len(group)
+        if "policy_sha256" in group:
+            policies = sorted(group["policy_sha256"].astype(str).unique())
+            if len(policies) > 1:  # e.g. two evaluations writing into one folder at once: not one policy's rate
+                raise MixedResultsError(
+                    f"the {n} {env_id} episodes labelled {agent!r} come from {len(policies)} policies (sha256 "
+                    f"{', '.join(h[:12] for h in policies)}): a summary row counts one policy's episodes only"
+                )
         k = int(group["success"].astype(bool).sum())
         low, high = wilson_interval(k, n)
         laps = pd.to_numeric(group.loc[group["success"].astype(bool), "lap_time"], errors="coerce").dropna()
@@ -521,8 +531,9 @@ def write_tables(out_dir: str | Path) -> pd.DataFrame:
     """Rebuild ``episodes.csv`` and ``summary.csv`` in ``out_dir`` from its valid records; return the episodes."""
     out_dir = Path(out_dir)
     episodes = load_records(out_dir)
+    summary = summarize(episodes)  # first: a folder it refuses keeps both of its previous tables
     atomic_write(out_dir / "episodes.csv", episodes.to_csv(index=False))
-    atomic_write(out_dir / "summary.csv", summarize(episodes).to_csv(index=False, float_format="%.4f"))
+    atomic_write(out_dir / "summary.csv", summary.to_csv(index=False, float_format="%.4f"))
     return episodes
 
 

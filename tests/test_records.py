@@ -25,7 +25,14 @@ from racebench.agents import (
     load_agent,
     policy_identity,
 )
-from racebench.evaluation import EVAL_SEED_BASE, Evaluator, MixedResultsError, load_records, read_summaries
+from racebench.evaluation import (
+    EVAL_SEED_BASE,
+    Evaluator,
+    MixedResultsError,
+    load_records,
+    read_summaries,
+    summarize,
+)
 from racebench.records import (
     RECORD_FIELDS,
     InvalidRecordError,
@@ -83,6 +90,22 @@ def test_two_policies_never_share_an_output_directory(tmp_path: Path) -> None:
     with pytest.raises(MixedResultsError, match="--name planner"):
         Evaluator("planner", [ENV], episodes=1, out_dir=out, agent_name="other-label")
     assert set(load_records(out)["agent"]) == {"planner"}
+
+
+def test_a_folder_that_came_to_hold_two_policies_is_not_summarised(tmp_path: Path) -> None:
+    """Two evaluations writing into one folder at once (each checked it at start, when it was empty): the tables
+    are not rebuilt as one policy's, and the error names both hashes."""
+    first, second = write_agent(tmp_path / "a.py", -0.2), write_agent(tmp_path / "b.py", -0.1)
+    out = tmp_path / "out"
+    late = Evaluator(second, [ENV], episodes=1, out_dir=out, trust_code=True, agent_name="hover-x")
+    Evaluator(first, [ENV], episodes=1, out_dir=out, trust_code=True, agent_name="hover-x").run(progress=False)
+    tables_before = [(out / name).read_text() for name in ("episodes.csv", "summary.csv")]
+    with pytest.raises(MixedResultsError, match="come from 2 policies"):
+        late.run(progress=False)  # its record lands beside the first policy's
+    assert len(list((out / "records").glob("*.json"))) == 2  # both finished records kept, neither counted
+    assert [(out / name).read_text() for name in ("episodes.csv", "summary.csv")] == tables_before
+    with pytest.raises(MixedResultsError, match="come from 2 policies"):
+        summarize(load_records(out))
 
 
 def test_force_discards_what_the_directory_held(tmp_path: Path) -> None:
