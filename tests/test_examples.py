@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import re
 import sys
@@ -381,3 +382,41 @@ def test_extra_fit_continues_a_runs_fit_from_its_saved_state(tmp_path, monkeypat
     monkeypatch.setattr("sys.argv", ["extra_fit", str(run), "--epochs", "1", "--out", str(tmp_path / "c")])
     with pytest.raises(SystemExit, match="is not a DAgger state"):
         module.main()
+
+
+def test_ensemble_agent_averages_its_members_actions_and_pins_them(tmp_path) -> None:
+    """baselines/ensemble_agent.py: one member acts as that member alone; two act as their mean, per episode
+    and in lockstep; a member whose bytes differ from its pinned sha256 is refused."""
+    import gymnasium as gym
+
+    from racebench.agents import AgentLoadError, SB3Agent
+
+    spec = importlib.util.spec_from_file_location("ensemble_agent", ROOT / "baselines" / "ensemble_agent.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    paths = [str(ROOT / "baselines" / "checkpoints" / f"vision-distill-{t}" / f"vision-distill-{t}.zip") for t in "SJ"]
+    digests = [hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in paths]
+    env = gym.make("RaceObs-S-v0")
+    observations = [env.reset(seed=seed)[0] for seed in (1, 2)]
+    env.close()
+
+    singles = [SB3Agent(p, trust_code=True) for p in paths]
+    for single in singles:
+        single.start(2)
+    expected = np.mean([single.act_batch(observations) for single in singles], axis=0)
+    pair = module.EnsembleAgent(paths, digests)
+    assert pair.obs_mode == "vision" and pair.privileged is False
+    pair.start(2)
+    np.testing.assert_allclose(pair.act_batch(observations), expected, rtol=0, atol=1e-6)
+
+    alone = module.EnsembleAgent(paths[:1], digests[:1])
+    alone.reset()
+    singles[0].reset()
+    np.testing.assert_array_equal(alone.act(observations[0]), np.asarray(singles[0].act(observations[0])).reshape(-1))
+
+    with pytest.raises(AgentLoadError, match="expected"):
+        module.EnsembleAgent(paths, digests[::-1])
+    with pytest.raises(AgentLoadError, match="2 checkpoints but 1"):
+        module.EnsembleAgent(paths, digests[:1])
+    with pytest.raises(AgentLoadError, match="does not exist"):
+        module.EnsembleAgent([str(tmp_path / "none.zip")], ["0" * 64])
