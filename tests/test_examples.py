@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import json
 import re
 import sys
 from pathlib import Path
@@ -84,7 +85,6 @@ def test_readme_first_python_snippet_runs_as_written(tmp_path, monkeypatch, caps
 
 def test_the_ab_report_reads_run_folders_and_applies_the_stated_rule(tmp_path) -> None:
     """baselines/ab_report.py: rows from a sweep's run folders; the decision only with 3 finished runs per arm."""
-    import json
 
     spec = importlib.util.spec_from_file_location("ab_report", ROOT / "baselines" / "ab_report.py")
     report = importlib.util.module_from_spec(spec)
@@ -331,7 +331,6 @@ def test_heldout_gap_scores_a_student_with_the_fits_own_loss(tmp_path, monkeypat
 
 def test_extra_fit_continues_a_runs_fit_from_its_saved_state(tmp_path, monkeypatch) -> None:
     import hashlib
-    import json
 
     from racebench.agents import SB3Agent
     from racebench.training import dagger
@@ -384,7 +383,7 @@ def test_extra_fit_continues_a_runs_fit_from_its_saved_state(tmp_path, monkeypat
         module.main()
 
 
-def test_ensemble_agent_averages_its_members_actions_and_pins_them(tmp_path) -> None:
+def test_ensemble_agent_averages_its_members_actions_and_pins_them(tmp_path, monkeypatch, capsys) -> None:
     """baselines/ensemble_agent.py: one member acts as that member alone; two act as their mean, per episode
     and in lockstep; a member whose bytes differ from its pinned sha256 is refused."""
     import gymnasium as gym
@@ -420,3 +419,7 @@ def test_ensemble_agent_averages_its_members_actions_and_pins_them(tmp_path) -> 
         module.EnsembleAgent(paths, digests[:1])
     with pytest.raises(AgentLoadError, match="does not exist"):
         module.EnsembleAgent([str(tmp_path / "none.zip")], ["0" * 64])
+
+    monkeypatch.setattr("sys.argv", ["ensemble_agent", *paths])
+    module.main()
+    assert json.loads(capsys.readouterr().out) == {"checkpoints": paths, "sha256": digests}
