@@ -153,6 +153,8 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(path_aux_weight=-0.5).validate()
     with pytest.raises(ValueError, match="path_aux_weight needs teacher planner-fast"):
         DaggerConfig(teacher="planner", path_aux_weight=1.0).validate()
+    with pytest.raises(ValueError, match="mixture_sigma must be > 0"):
+        DaggerConfig(mixture_sigma=0.0).validate()
 
 
 def test_the_learning_rate_falls_linearly_from_the_first_iteration_to_the_last() -> None:
@@ -887,3 +889,106 @@ def test_the_path_head_shapes_the_student_and_stays_out_of_its_checkpoint(tmp_pa
     env.close()
     with pytest.raises(ValueError, match="path_aux_weight reads a GRU's output"):
         distill(DaggerConfig(**{**config.__dict__, "student": "vision-no-gru"}), tmp_path / "ff", eval_episodes=0)
+
+
+def test_a_mixture_head_keeps_both_modes_of_bimodal_labels_where_the_mse_averages_them() -> None:
+    """The same input labelled half the time +0.8 and half -0.8 on one axis (a teacher passing an obstacle left or
+    right): the MSE head learns 0, the mixture head keeps a candidate at each label, scores them equally, and flies
+    one of them, not their average."""
+    import torch
+
+    from racebench.training.policies import MixtureActionHead, mixture_action_loss
+
+    torch.manual_seed(0)
+    latent = torch.ones(256, 8)
+    target = torch.zeros(256, 4)
+    target[:128, 0], target[128:, 0] = 0.8, -0.8
+    mixture, linear = MixtureActionHead(8, 4, components=2), torch.nn.Linear(8, 4)
+    optimizer = torch.optim.Adam([*mixture.parameters(), *linear.parameters()], lr=0.02)
+    for _ in range(400):
+        loss = mixture_action_loss(mixture, latent, target, sigma=0.2).mean()
+        loss = loss + torch.nn.functional.mse_loss(linear(latent), target)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        means, scores = mixture.components(latent[:1])
+        assert abs(float(linear(latent[:1])[0, 0])) < 0.05  # the regression's average: no swerve at all
+        np.testing.assert_allclose(sorted(means[0, :, 0].tolist()), [-0.8, 0.8], atol=0.05)
+        np.testing.assert_allclose(torch.softmax(scores[0], -1).numpy(), [0.5, 0.5], atol=0.05)
+        flown = mixture(latent[:1])[0]
+        assert abs(abs(float(flown[0])) - 0.8) < 0.05 and float(flown[1:].abs().max()) < 0.05
+
+
+def test_the_mixture_loss_is_the_mse_when_one_candidate_takes_all_and_the_head_flies_the_top_score() -> None:
+    import torch
+
+    from racebench.training.policies import MixtureActionHead, mixture_action_loss
+
+    head = MixtureActionHead(3, 4, components=3)
+    latent = torch.randn(5, 3)
+    target = torch.rand(5, 4) * 2 - 1
+    with torch.no_grad():
+        head.scores.weight.zero_()
+        head.scores.bias.copy_(torch.tensor([0.0, 60.0, 0.0]))  # candidate 1 has all the weight
+        means, _ = head.components(latent)
+        for sigma in (0.1, 0.5):
+            expected = ((means[:, 1] - target) ** 2).mean(-1)
+            torch.testing.assert_close(mixture_action_loss(head, latent, target, sigma), expected, atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(head(latent), means[:, 1])
+        head.scores.bias.copy_(torch.tensor([0.0, 0.0, 60.0]))
+        torch.testing.assert_close(head(latent), means[:, 2])
+    with pytest.raises(ValueError, match="2 components"):
+        MixtureActionHead(3, 4, components=1)
+
+
+def test_a_mixture_student_is_distilled_and_flown_by_the_evaluator_as_trained(tmp_path: Path) -> None:
+    """A student with ``action_components: 3`` (experiment distill-mixture's) goes through DAgger, its weight-averaged
+    checkpoint reloads with the mixture head, the evaluator's actions are the training unroll's chosen candidates (also
+    exported to ONNX); a bad count is refused."""
+    import gymnasium as gym
+    import torch
+
+    from racebench.training.dagger import student_features, student_unroll
+    from racebench.training.policies import MixtureActionHead
+    from racebench.training.train import TrainConfig
+
+    student = tmp_path / "student.yaml"
+    student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + "\naction_components: 3\n")
+    config = DaggerConfig(iterations=2, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64, sequence_length=16,
+                          student=str(student), keep_iterations=2, final_student="average")  # fmt: skip
+    summary = distill(config, tmp_path / "run", eval_episodes=0)
+    assert np.isfinite(pd.read_csv(tmp_path / "run" / "progress.csv")["loss"]).all()
+    agent = SB3Agent(summary["checkpoint"], trust_code=True)
+    policy = agent.model.policy
+    assert isinstance(policy.action_net, MixtureActionHead) and policy.action_net.n_components == 3
+
+    env = gym.make("RaceObs-S-v0", obs_mode="vision")
+    obs, _ = env.reset(seed=1_000_000)
+    agent.start(1)
+    hidden = torch.zeros(1, 1, policy.lstm_actor.hidden_size)
+    for _ in range(3):
+        evaluated = agent.act_batch([obs])[0]
+        with torch.no_grad():
+            tensors = {k: torch.as_tensor(v[None]) for k, v in obs.items()}
+            trained, output = student_unroll(policy, student_features(policy, tensors)[None], hidden)
+            means, scores = policy.action_net.components(policy.mlp_extractor.forward_actor(output[0]))
+        hidden = output[-1:]
+        np.testing.assert_allclose(evaluated, trained[0, 0].numpy().clip(-1, 1), atol=1e-6)
+        np.testing.assert_allclose(trained[0, 0].numpy(), means[0, int(scores[0].argmax())].numpy(), atol=1e-6)
+        obs, *_ = env.step(evaluated)
+    env.close()
+    # Exported to ONNX (the leaderboard's code-free format), it flies the same candidates.
+    from racebench.agents import OnnxAgent, export_onnx
+
+    onnx = OnnxAgent(export_onnx(agent.model, tmp_path / "mixture.onnx"))
+    onnx.reset()
+    agent.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        o = {"state": rng.uniform(-1, 1, 17).astype(np.float32), "depth": rng.random((1, 64, 64), np.float32)}
+        np.testing.assert_allclose(onnx.act(o), agent.act(o), atol=1e-5)
+    for bad, message in (("0", "must be >= 1"), ("2\nrecurrent: false", "needs the recurrent")):
+        student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + f"\naction_components: {bad}\n")
+        with pytest.raises(ValueError, match=message):
+            TrainConfig.from_yaml(student)

@@ -52,6 +52,7 @@ from racebench.agents import BUILTIN_VERSIONS, load_agent
 from racebench.evaluation import EVAL_SEED_BASE
 from racebench.planner import FastPlannerAgent, PlannerAgent
 from racebench.raycast import BatchDepthRenderer
+from racebench.training.policies import MixtureActionHead, mixture_action_loss
 
 TEACHERS: tuple[str, ...] = ("planner-fast", "planner")  # privileged built-ins that can label every state
 # The auxiliary task's target (DaggerConfig.path_aux_weight): the teacher's line this far ahead along it, m, as
@@ -139,6 +140,10 @@ class DaggerConfig:
     # planner-fast plans again from a student that is farther than this from its line (m; None: never)
     teacher_replan_distance: float | None = None
     student: str = "vision-ppo"  # the PPO baseline config whose network the student is (vision-ppo: the paper's)
+    # With a student of ``action_components`` >= 2 (a MixtureActionHead) the fit minimises the mixture's scaled
+    # negative log-likelihood (policies.mixture_action_loss) with Gaussians of this standard deviation (in actions
+    # in [-1, 1]) instead of the MSE; ignored for a single-output student.
+    mixture_sigma: float = 0.2
     sequence_length: int = 32  # truncated-BPTT chunk of a recurrent student, in steps
     # Loss weight of the last ``crash_window`` steps before each crash (obstacle, gate, ground or out of bounds) of a
     # collected episode (1: unweighted).
@@ -225,6 +230,7 @@ class DaggerConfig:
             (0 <= self.seed < EVAL_SEED_BASE, f"seed must be in [0, {EVAL_SEED_BASE})"),
             (self.teacher in TEACHERS, f"teacher must be one of {TEACHERS}, got {self.teacher!r}"),
             (self.sequence_length >= 1, "sequence_length must be >= 1"),
+            (self.mixture_sigma > 0.0, "mixture_sigma must be > 0"),
             (self.crash_weight > 0.0 and self.crash_window >= 1, "need crash_weight > 0 and crash_window >= 1"),
             (0.0 <= self.replay_failed < 1.0, "replay_failed must be in [0, 1)"),
             (self.weight_decay >= 0.0, "weight_decay must be >= 0"),
@@ -743,10 +749,14 @@ def sequence_loss(
 def sequence_terms(
     policy: Any, dataset: Dataset, first: np.ndarray, count: np.ndarray, states: torch.Tensor, length: int,
     weighted: bool = False, shifts: np.ndarray | None = None, path_head: torch.nn.Module | None = None,
+    mixture_sigma: float = 0.2,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:  # fmt: skip
     """:func:`sequence_loss` and, with ``path_head``, the auxiliary loss: the mean squared error of the head's
     prediction from each step's GRU output against the stored target, over the real steps that have one
-    (``aux_mask``; unweighted). Without a head the second term is ``None``."""
+    (``aux_mask``; unweighted). Without a head the second term is ``None``. A student with a mixture head
+    (:class:`~racebench.training.policies.MixtureActionHead`) is fitted with its scaled mixture loss
+    (:func:`~racebench.training.policies.mixture_action_loss`, standard deviation ``mixture_sigma``) in place of
+    the squared error, averaged the same way."""
     offsets = np.arange(length)
     steps = np.minimum(first[:, None] + offsets, first[:, None] + count[:, None] - 1)
     index = steps.T.reshape(-1)  # time-major: (length * chunks)
@@ -759,7 +769,12 @@ def sequence_terms(
     actions, output = student_unroll(policy, features, states[None])
     real = torch.from_numpy(offsets[:, None] < count[None, :]).unsqueeze(-1)
     mask = real * weight if weighted else real
-    loss = ((actions - target) ** 2 * mask).sum() / (mask.sum() * target.shape[-1])
+    if isinstance(policy.action_net, MixtureActionHead):
+        latent = policy.mlp_extractor.forward_actor(output)
+        per_step = mixture_action_loss(policy.action_net, latent, target, mixture_sigma).unsqueeze(-1)
+        loss = (per_step * mask).sum() / mask.sum()
+    else:
+        loss = ((actions - target) ** 2 * mask).sum() / (mask.sum() * target.shape[-1])
     if path_head is None:
         return loss, None
     aux_target = torch.from_numpy(dataset.aux[index]).view(length, len(first), -1)
@@ -845,7 +860,8 @@ def fit(
                     else None
                 )
                 error, aux_error = sequence_terms(
-                    policy, dataset, first[pick], count[pick], states[pick], length, weighted, shifts, path_head
+                    policy, dataset, first[pick], count[pick], states[pick], length, weighted, shifts, path_head,
+                    config.mixture_sigma,
                 )  # fmt: skip
                 total = error if aux_error is None else error + config.path_aux_weight * aux_error
                 optimizer.zero_grad()
@@ -857,6 +873,8 @@ def fit(
         if aux_losses is not None:
             aux_losses.extend(aux)
     else:
+        if isinstance(policy.action_net, MixtureActionHead):
+            raise ValueError("dagger: a mixture action head is fitted on sequences: it needs a recurrent student")
         for order in pass_orders(dataset.size, config.epochs, config.fit_samples, rng):
             if len(order) < config.batch_size:
                 break  # too few left for one minibatch

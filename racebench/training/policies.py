@@ -111,14 +111,77 @@ class LSTMShapedGRU(nn.GRU):
         return output, (hidden, cell)
 
 
+class MixtureActionHead(nn.Module):
+    """An actor output of ``components`` candidate actions and a score for each; its output (what SB3's
+    ``action_net`` returns: the Gaussian's mean, the deterministic action) is the highest-scoring candidate's.
+
+    Why: a student regressed with the mean squared error onto a teacher that, in look-alike scenes, passes an
+    obstacle sometimes on the left and sometimes on the right learns the average of the two, a swerve too small
+    for either side; a mixture can keep both and commit to one (a mixture density network, Bishop 1994, read out
+    at its most probable component). :func:`mixture_action_loss` is its training loss.
+    """
+
+    def __init__(self, latent_dim: int, action_dim: int, components: int) -> None:
+        super().__init__()
+        if components < 2:
+            raise ValueError(f"a mixture head needs >= 2 components, got {components}")
+        self.action_dim = action_dim
+        self.n_components = components
+        self.means = nn.Linear(latent_dim, components * action_dim)
+        self.scores = nn.Linear(latent_dim, components)
+        # SB3's initialisation of an action head (orthogonal, gain 0.01): near-zero actions at the start. The
+        # component biases are spread so the candidates differ from the first step (else all get one gradient).
+        for layer in (self.means, self.scores):
+            nn.init.orthogonal_(layer.weight, gain=0.01)
+            nn.init.zeros_(layer.bias)
+        with torch.no_grad():
+            self.means.bias.copy_(torch.linspace(-0.1, 0.1, components).repeat_interleave(action_dim))
+
+    def components(self, latent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The candidates ``(..., components, action_dim)`` and their scores (logits) ``(..., components)``."""
+        means = self.means(latent).unflatten(-1, (self.n_components, self.action_dim))
+        return means, self.scores(latent)
+
+    def forward(self, latent: torch.Tensor) -> torch.Tensor:
+        """The highest-scoring candidate ``(..., action_dim)``."""
+        means, scores = self.components(latent)
+        pick = scores.argmax(dim=-1, keepdim=True).unsqueeze(-1).expand(*scores.shape[:-1], 1, self.action_dim)
+        return means.gather(-2, pick).squeeze(-2)  # gather, not take_along_dim: ONNX exports it
+
+
+def mixture_action_loss(
+    head: MixtureActionHead, latent: torch.Tensor, target: torch.Tensor, sigma: float
+) -> torch.Tensor:
+    """Per-sample loss ``(...,)`` of ``head`` on the labels ``target`` ``(..., action_dim)``: the negative
+    log-likelihood of a mixture of isotropic Gaussians of standard deviation ``sigma`` at the candidates, with
+    weights the softmax of the scores, times ``2 sigma^2 / action_dim``.
+
+    The scaling makes it the mean squared error per action dimension when one candidate takes all the weight (a
+    single Gaussian's NLL up to a constant), so a learning rate tuned for the MSE student fits this one. Each
+    candidate is pulled towards a label in proportion to its posterior responsibility for it, and the scores learn
+    those responsibilities: small ``sigma`` divides the labels among candidates sharply.
+    """
+    means, scores = head.components(latent)
+    squared = ((means - target.unsqueeze(-2)) ** 2).sum(-1)
+    log_likelihood = torch.logsumexp(torch.log_softmax(scores, dim=-1) - squared / (2.0 * sigma**2), dim=-1)
+    return -log_likelihood * (2.0 * sigma**2 / target.shape[-1])
+
+
 class RecurrentGRUPolicy(RecurrentMultiInputActorCriticPolicy):
     """sb3-contrib's recurrent actor-critic with GRUs instead of LSTMs (see the module docstring).
 
-    Works for Dict and Box observations (the features extractor handles both).
+    Works for Dict and Box observations (the features extractor handles both). With ``action_components`` >= 2
+    the actor's output layer is a :class:`MixtureActionHead` (the Gaussian's mean is its chosen candidate).
     """
 
-    def __init__(self, observation_space: gym.Space, action_space: gym.Space, lr_schedule, **kwargs: Any) -> None:
+    def __init__(
+        self, observation_space: gym.Space, action_space: gym.Space, lr_schedule, action_components: int = 1,
+        **kwargs: Any,
+    ) -> None:  # fmt: skip
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)
+        if action_components > 1:
+            latent = self.mlp_extractor.latent_dim_pi
+            self.action_net = MixtureActionHead(latent, int(action_space.shape[0]), action_components)
         hidden = self.lstm_output_dim
         layers = self.lstm_actor.num_layers
         self.lstm_actor = LSTMShapedGRU(self.features_dim, hidden, num_layers=layers, **self.lstm_kwargs)
@@ -126,6 +189,11 @@ class RecurrentGRUPolicy(RecurrentMultiInputActorCriticPolicy):
             self.lstm_critic = LSTMShapedGRU(self.features_dim, hidden, num_layers=layers, **self.lstm_kwargs)
         # The parent built its optimizer over the LSTM parameters: rebuild it over the GRU ones.
         self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+        self.action_components = action_components
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        """The parent's, with ``action_components`` (what ``policy.save`` / ``load`` rebuild the policy from)."""
+        return {**super()._get_constructor_parameters(), "action_components": self.action_components}
 
     @staticmethod
     def _process_sequence(

@@ -153,6 +153,10 @@ class TrainConfig:
     critic_gru: bool = True  # the critic's own GRU (the paper's method); False: an MLP critic on the features
     net_arch: tuple[int, ...] = (192, 96)
     cnn: str = "strided"  # depth CNN, see racebench.training.policies.depth_cnn ("paper": conv + max-pool)
+    # Candidate actions of the actor's output (1: SB3's linear mean). >= 2: a MixtureActionHead, the deterministic
+    # action is the highest-scoring candidate; its scores learn only from a DAgger student's mixture loss
+    # (racebench.training.dagger), so a PPO run uses it only to fine-tune such a student (init_from).
+    action_components: int = 1
     torch_threads: int = 1  # learner threads while collecting: more oversubscribes the cores the env workers use
     update_threads: int = 2  # learner threads during the PPO update, when the env workers are idle
     # Fine-tuning: a checkpoint whose policy weights start the run ({track} and {seed} are filled in; only its
@@ -222,6 +226,8 @@ class TrainConfig:
                 "level_budget must map levels below the last to step counts >= 1",
             ),
             (self.cnn in CNN_KINDS, f"cnn must be one of {CNN_KINDS}"),
+            (self.action_components >= 1, "action_components must be >= 1"),
+            (self.action_components == 1 or self.recurrent, "action_components >= 2 needs the recurrent (GRU) policy"),
             (self.torch_threads >= 1 and self.update_threads >= 1, "torch_threads and update_threads must be >= 1"),
             (self.critic_warmup >= 0, "critic_warmup must be >= 0"),
             (self.bc_coef >= 0.0, "bc_coef must be >= 0"),
@@ -854,6 +860,8 @@ def make_model(config: TrainConfig, env: VecEnv, seed: int, tensorboard: str | N
             net_arch=dict(pi=arch, vf=arch),
             log_std_init=config.log_std_init,
         )
+        if config.action_components > 1:  # only then: the policies saved before the key keep their kwargs
+            policy_kwargs["action_components"] = config.action_components
         return RecurrentPPO(RecurrentGRUPolicy, env, policy_kwargs=policy_kwargs, **common)
     from stable_baselines3 import PPO
 
