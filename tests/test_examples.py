@@ -423,3 +423,42 @@ def test_ensemble_agent_averages_its_members_actions_and_pins_them(tmp_path, mon
     monkeypatch.setattr("sys.argv", ["ensemble_agent", *paths])
     module.main()
     assert json.loads(capsys.readouterr().out) == {"checkpoints": paths, "sha256": digests}
+
+
+def test_mixture_modes_flies_the_top_candidate_as_the_evaluator_does(tmp_path, monkeypatch) -> None:
+    """baselines/mixture_modes.py: its flight of a mixture student is the evaluator agent's flight (same steps, same
+    outcome), it returns every step's candidates with weights summing to 1, and a single-output checkpoint is
+    refused."""
+    import gymnasium as gym
+
+    from racebench.agents import SB3Agent
+    from racebench.training.dagger import DaggerConfig, distill
+
+    spec = importlib.util.spec_from_file_location("mixture_modes", ROOT / "baselines" / "mixture_modes.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    student = tmp_path / "student.yaml"
+    student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + "\naction_components: 3\n")
+    config = DaggerConfig(iterations=1, steps_per_iteration=64, n_envs=4, epochs=1, batch_size=32, sequence_length=8,
+                          student=str(student))  # fmt: skip
+    checkpoint = distill(config, tmp_path / "run", eval_episodes=0)["checkpoint"]
+    agent = SB3Agent(checkpoint, trust_code=True)
+
+    env = gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast")
+    success, candidates, weights = module.fly(agent.model.policy, env, seed=1_000_003)
+    assert candidates.shape == (len(weights), 3, 4) and weights.shape == (len(candidates), 3)
+    np.testing.assert_allclose(weights.sum(1), 1.0, atol=1e-6)
+    obs, _ = env.reset(seed=1_000_003)
+    agent.start(1)
+    for step in range(len(weights)):
+        action = agent.act_batch([obs])[0]
+        np.testing.assert_allclose(action, candidates[step, weights[step].argmax()].clip(-1, 1), atol=1e-6)
+        obs, _, terminated, truncated, info = env.step(action)
+        assert (terminated or truncated) == (step == len(weights) - 1)
+    assert info["is_success"] == success
+    env.close()
+
+    plain = ROOT / "baselines" / "checkpoints" / "vision-distill-S" / "vision-distill-S.zip"
+    monkeypatch.setattr("sys.argv", ["mixture_modes", str(plain), "--episodes", "1"])
+    with pytest.raises(SystemExit, match="no mixture head"):
+        module.main()
