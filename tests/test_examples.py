@@ -462,3 +462,46 @@ def test_mixture_modes_flies_the_top_candidate_as_the_evaluator_does(tmp_path, m
     monkeypatch.setattr("sys.argv", ["mixture_modes", str(plain), "--episodes", "1"])
     with pytest.raises(SystemExit, match="no mixture head"):
         module.main()
+
+
+def test_the_mixture_readout_agent_flies_the_weighted_mean_of_the_candidates(tmp_path) -> None:
+    """baselines/mixture_readout_agent.py: its action is the softmax-weighted mean of the student's candidates (in
+    lockstep and per episode); a checkpoint whose bytes differ from the pinned sha256, or without a mixture head, is
+    refused."""
+    import gymnasium as gym
+
+    from racebench.agents import AgentLoadError
+    from racebench.training.dagger import DaggerConfig, distill, student_features
+
+    path = ROOT / "baselines" / "mixture_readout_agent.py"
+    spec = importlib.util.spec_from_file_location("mixture_readout_agent", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    student = tmp_path / "student.yaml"
+    student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + "\naction_components: 3\n")
+    config = DaggerConfig(iterations=1, steps_per_iteration=64, n_envs=4, epochs=1, batch_size=32, sequence_length=8,
+                          student=str(student))  # fmt: skip
+    checkpoint = str(distill(config, tmp_path / "run", eval_episodes=0)["checkpoint"])
+    digest = hashlib.sha256(Path(checkpoint).read_bytes()).hexdigest()
+    agent = module.MixtureReadoutAgent(checkpoint, digest)
+    policy = agent.student.model.policy
+
+    env = gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast")
+    observations = [env.reset(seed=seed)[0] for seed in (1, 2)]
+    env.close()
+    with torch.no_grad():
+        batch = {k: torch.as_tensor(np.stack([o[k] for o in observations])) for k in ("state", "depth")}
+        output, _ = policy.lstm_actor(student_features(policy, batch)[None], (torch.zeros(1, 2, 256),) * 2)
+        means, scores = policy.action_net.components(policy.mlp_extractor.forward_actor(output[0]))
+        expected = (torch.softmax(scores, -1)[..., None] * means).sum(1).numpy()
+    assert not np.allclose(expected, means[torch.arange(2), scores.argmax(-1)].numpy())  # not the top candidate
+    agent.start(2)
+    np.testing.assert_allclose(agent.act_batch(observations), expected, atol=1e-6)
+    agent.reset()
+    np.testing.assert_allclose(agent.act(observations[0]), expected[0].clip(-1, 1), atol=1e-6)
+
+    with pytest.raises(AgentLoadError, match="expected"):
+        module.MixtureReadoutAgent(checkpoint, "0" * 64)
+    plain = ROOT / "baselines" / "checkpoints" / "vision-distill-S" / "vision-distill-S.zip"
+    with pytest.raises(AgentLoadError, match="no mixture head"):
+        module.MixtureReadoutAgent(str(plain), hashlib.sha256(plain.read_bytes()).hexdigest())
