@@ -425,6 +425,25 @@ def test_ensemble_agent_averages_its_members_actions_and_pins_them(tmp_path, mon
     assert json.loads(capsys.readouterr().out) == {"checkpoints": paths, "sha256": digests}
 
 
+def baseline_module(name: str):
+    """The script ``baselines/<name>.py`` imported as a module."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "baselines" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def tiny_mixture_student(tmp_path: Path) -> str:
+    """The checkpoint of a one-iteration DAgger run of a student with a 3-candidate mixture head."""
+    from racebench.training.dagger import DaggerConfig, distill
+
+    student = tmp_path / "student.yaml"
+    student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + "\naction_components: 3\n")
+    config = DaggerConfig(iterations=1, steps_per_iteration=64, n_envs=4, epochs=1, batch_size=32, sequence_length=8,
+                          student=str(student))  # fmt: skip
+    return str(distill(config, tmp_path / "run", eval_episodes=0)["checkpoint"])
+
+
 def test_mixture_modes_flies_the_top_candidate_as_the_evaluator_does(tmp_path, monkeypatch) -> None:
     """baselines/mixture_modes.py: its flight of a mixture student is the evaluator agent's flight (same steps, same
     outcome), it returns every step's candidates with weights summing to 1, and a single-output checkpoint is
@@ -432,16 +451,9 @@ def test_mixture_modes_flies_the_top_candidate_as_the_evaluator_does(tmp_path, m
     import gymnasium as gym
 
     from racebench.agents import SB3Agent
-    from racebench.training.dagger import DaggerConfig, distill
 
-    spec = importlib.util.spec_from_file_location("mixture_modes", ROOT / "baselines" / "mixture_modes.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    student = tmp_path / "student.yaml"
-    student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + "\naction_components: 3\n")
-    config = DaggerConfig(iterations=1, steps_per_iteration=64, n_envs=4, epochs=1, batch_size=32, sequence_length=8,
-                          student=str(student))  # fmt: skip
-    checkpoint = distill(config, tmp_path / "run", eval_episodes=0)["checkpoint"]
+    module = baseline_module("mixture_modes")
+    checkpoint = tiny_mixture_student(tmp_path)
     agent = SB3Agent(checkpoint, trust_code=True)
 
     env = gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast")
@@ -471,17 +483,10 @@ def test_the_mixture_readout_agent_flies_the_weighted_mean_of_the_candidates(tmp
     import gymnasium as gym
 
     from racebench.agents import AgentLoadError
-    from racebench.training.dagger import DaggerConfig, distill, student_features
+    from racebench.training.dagger import student_features
 
-    path = ROOT / "baselines" / "mixture_readout_agent.py"
-    spec = importlib.util.spec_from_file_location("mixture_readout_agent", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    student = tmp_path / "student.yaml"
-    student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + "\naction_components: 3\n")
-    config = DaggerConfig(iterations=1, steps_per_iteration=64, n_envs=4, epochs=1, batch_size=32, sequence_length=8,
-                          student=str(student))  # fmt: skip
-    checkpoint = str(distill(config, tmp_path / "run", eval_episodes=0)["checkpoint"])
+    module = baseline_module("mixture_readout_agent")
+    checkpoint = tiny_mixture_student(tmp_path)
     digest = hashlib.sha256(Path(checkpoint).read_bytes()).hexdigest()
     agent = module.MixtureReadoutAgent(checkpoint, digest)
     policy = agent.student.model.policy
