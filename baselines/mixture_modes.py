@@ -29,7 +29,7 @@ import torch
 
 from racebench.agents import SB3Agent
 from racebench.evaluation import EVAL_SEED_BASE
-from racebench.training.dagger import student_features
+from racebench.training.dagger import student_features, student_unroll
 from racebench.training.policies import MixtureActionHead
 
 
@@ -41,7 +41,7 @@ def fly(policy, env: gym.Env, seed: int) -> tuple[bool, np.ndarray, np.ndarray]:
     while True:
         with torch.no_grad():
             tensors = {k: torch.as_tensor(v[None]) for k, v in obs.items()}
-            output, _ = policy.lstm_actor(student_features(policy, tensors)[None], (hidden, torch.zeros_like(hidden)))
+            _, output = student_unroll(policy, student_features(policy, tensors)[None], hidden)
             hidden = output[-1:]
             means, scores = policy.action_net.components(policy.mlp_extractor.forward_actor(output[0]))
         candidates.append(means[0].numpy())

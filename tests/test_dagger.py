@@ -992,3 +992,9 @@ def test_a_mixture_student_is_distilled_and_flown_by_the_evaluator_as_trained(tm
         student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + f"\naction_components: {bad}\n")
         with pytest.raises(ValueError, match=message):
             TrainConfig.from_yaml(student)
+    # PPO from scratch would never train the scores: a mixture policy is only fine-tuned (init_from).
+    from racebench.training.train import train
+
+    student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + "\naction_components: 3\n")
+    with pytest.raises(ValueError, match="needs init_from"):
+        train(TrainConfig.from_yaml(student), "S", steps=64, out=tmp_path / "ppo", eval_episodes=0)

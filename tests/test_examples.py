@@ -483,7 +483,7 @@ def test_the_mixture_readout_agent_flies_the_weighted_mean_of_the_candidates(tmp
     import gymnasium as gym
 
     from racebench.agents import AgentLoadError
-    from racebench.training.dagger import student_features
+    from racebench.training.dagger import student_features, student_unroll
 
     module = baseline_module("mixture_readout_agent")
     checkpoint = tiny_mixture_student(tmp_path)
@@ -496,7 +496,7 @@ def test_the_mixture_readout_agent_flies_the_weighted_mean_of_the_candidates(tmp
     env.close()
     with torch.no_grad():
         batch = {k: torch.as_tensor(np.stack([o[k] for o in observations])) for k in ("state", "depth")}
-        output, _ = policy.lstm_actor(student_features(policy, batch)[None], (torch.zeros(1, 2, 256),) * 2)
+        _, output = student_unroll(policy, student_features(policy, batch)[None], torch.zeros(1, 2, 256))
         means, scores = policy.action_net.components(policy.mlp_extractor.forward_actor(output[0]))
         expected = (torch.softmax(scores, -1)[..., None] * means).sum(1).numpy()
     assert not np.allclose(expected, means[torch.arange(2), scores.argmax(-1)].numpy())  # not the top candidate

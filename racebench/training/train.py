@@ -155,7 +155,8 @@ class TrainConfig:
     cnn: str = "strided"  # depth CNN, see racebench.training.policies.depth_cnn ("paper": conv + max-pool)
     # Candidate actions of the actor's output (1: SB3's linear mean). >= 2: a MixtureActionHead, the deterministic
     # action is the highest-scoring candidate; its scores learn only from a DAgger student's mixture loss
-    # (racebench.training.dagger), so a PPO run uses it only to fine-tune such a student (init_from).
+    # (racebench.training.dagger), so a PPO run takes it only to fine-tune such a student (init_from; train refuses
+    # it otherwise).
     action_components: int = 1
     torch_threads: int = 1  # learner threads while collecting: more oversubscribes the cores the env workers use
     update_threads: int = 2  # learner threads during the PPO update, when the env workers are idle
@@ -895,6 +896,11 @@ def train(
     """
     if track not in BUILTIN_TRACKS:
         raise ValueError(f"track must be one of {BUILTIN_TRACKS}, got {track!r}")
+    if config.action_components > 1 and config.init_from is None:  # PPO never trains the candidates' scores
+        raise ValueError(
+            f"{config.name}: action_components {config.action_components} needs init_from (a mixture student to "
+            "fine-tune): PPO trains only the chosen candidate, the scores learn from DAgger's mixture loss"
+        )
     out = Path(out or Path("runs") / f"{config.name}-{track}-seed{seed}")
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(yaml.safe_dump({k: _plain(v) for k, v in config.__dict__.items()}))
