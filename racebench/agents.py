@@ -428,7 +428,19 @@ class SB3Agent:
         actions = actions.cpu().numpy().reshape((-1, *self.model.action_space.shape))
         if policy.squash_output:
             return policy.unscale_action(actions)
-        return np.clip(actions, self.model.action_space.low, self.model.action_space.high)
+        actions = np.clip(actions, self.model.action_space.low, self.model.action_space.high)
+        return self._to_ctbr(actions, observations)
+
+    def _to_ctbr(self, actions: np.ndarray, observations: Any) -> np.ndarray:
+        """The env's actions for the policy's outputs: an acceleration-command policy's (``action_output``) through
+        :func:`racebench.control.command_to_ctbr` on the observations' state, any other's unchanged."""
+        if getattr(self.model.policy, "action_output", "ctbr") == "ctbr":
+            return actions
+        from racebench.control import command_to_ctbr
+
+        observations = observations if isinstance(observations, list) else [observations]
+        states = np.stack([o["state"] if isinstance(o, dict) else o for o in observations])
+        return command_to_ctbr(actions.reshape(len(states), 4), states).reshape(actions.shape)
 
     def _gaussian_mean(self, policy: Any, obs: Any) -> Any:
         """The deterministic action of a Gaussian actor-critic, computed as ``_predict`` does, minus its overhead.
@@ -452,7 +464,7 @@ class SB3Agent:
 
     def act(self, obs: Any) -> np.ndarray:
         """Deterministic action of the policy."""
-        obs = self.prepare(obs)
+        raw, obs = obs, self.prepare(obs)
         if self.recurrent:
             action, self.state = self.model.predict(
                 obs, state=self.state, episode_start=self.episode_start, deterministic=True
@@ -460,7 +472,7 @@ class SB3Agent:
             self.episode_start = np.zeros((1,), dtype=bool)
         else:
             action, _ = self.model.predict(obs, deterministic=True)
-        return action
+        return self._to_ctbr(action, raw)
 
 
 def _is_gaussian_actor_critic(policy: Any) -> bool:
@@ -636,6 +648,11 @@ def export_onnx(model: Any, path: str | Path) -> Path:
         )
     if gru is not None and gru.num_layers != 1:
         raise ValueError(f"export_onnx: a GRU of {gru.num_layers} layers is not supported (1 layer)")
+    if getattr(policy, "action_output", "ctbr") != "ctbr":
+        raise ValueError(
+            f"export_onnx: the policy outputs {policy.action_output} commands, not the env's CTBR action (its controller, "
+            "racebench.control.command_to_ctbr, is not part of the network)"
+        )
 
     class Actor(torch.nn.Module):
         def __init__(self) -> None:

@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from racebench.quadrotor import QuadrotorParams
+from racebench.reward import wrap_angle
 
 
 def acceleration_to_ctbr(
@@ -39,6 +40,81 @@ def acceleration_to_ctbr(
     action[0] = 2.0 * thrust / params.max_thrust - 1.0
     action[1:] = rates / np.asarray(params.max_body_rate)
     return np.clip(action, -1.0, 1.0)
+
+
+def track_acceleration(
+    accel: np.ndarray, yaw_des: float, rotation: np.ndarray, params: QuadrotorParams, attitude_gain: float
+) -> np.ndarray:
+    """:func:`acceleration_to_ctbr` with altitude first: the fast expert's last stage, and an acceleration student's.
+
+    While the body turns toward a new thrust direction, the projection of the wanted force on body z drops and the
+    drone would sink; the collective thrust keeps at least the wanted vertical component (when the body is within
+    ~73° of upright).
+    """
+    action = acceleration_to_ctbr(accel, yaw_des, rotation, params, attitude_gain)
+    if rotation[2, 2] > 0.3:
+        vertical = params.mass * (accel[2] + params.gravity) / rotation[2, 2]
+        action[0] = max(action[0], min(2.0 * vertical / params.max_thrust - 1.0, 1.0))
+    return action
+
+
+# An acceleration command (what a student with ``action_output: acceleration`` outputs, 4 numbers in [-1, 1]): the
+# wanted acceleration (gravity excluded) in the heading frame (world axes turned by the drone's yaw; z up), in units of
+# COMMAND_ACCEL_SCALE, and the heading change wanted, in units of COMMAND_YAW_SCALE. It is flown by
+# :func:`command_to_ctbr` from the observation alone; the fast expert's commands are its labels (acceleration_command).
+COMMAND_ACCEL_SCALE = 20.0  # m/s² per unit: the airframe's 24 m/s² of thrust, less gravity, stays within ±1
+COMMAND_YAW_SCALE = 0.5  # rad per unit: the fast expert turns by at most this much heading error (max_yaw_error)
+COMMAND_ATTITUDE_GAIN = 10.0  # the fast expert's attitude gain (FastPlannerAgent.attitude_gain)
+
+
+def heading_yaw(rotation: np.ndarray) -> float:
+    """The yaw (rad) of the body x axis's horizontal projection."""
+    return math.atan2(rotation[1, 0], rotation[0, 0])
+
+
+def acceleration_command(accel: np.ndarray, yaw_des: float, rotation: np.ndarray) -> np.ndarray:
+    """The acceleration command (4 float32, clipped to [-1, 1]) that asks a drone at ``rotation`` for world-frame
+    acceleration ``accel`` (m/s², gravity excluded) at heading ``yaw_des`` (rad)."""
+    yaw = heading_yaw(rotation)
+    c, s = math.cos(yaw), math.sin(yaw)
+    command = np.array(
+        [(c * accel[0] + s * accel[1]) / COMMAND_ACCEL_SCALE, (c * accel[1] - s * accel[0]) / COMMAND_ACCEL_SCALE,
+         accel[2] / COMMAND_ACCEL_SCALE, wrap_angle(yaw_des - yaw) / COMMAND_YAW_SCALE],
+    )  # fmt: skip
+    return command.clip(-1.0, 1.0).astype(np.float32)
+
+
+def rotation_from_state(state: np.ndarray) -> np.ndarray:
+    """The body-to-world rotation matrix from a 17-float state observation (its quaternion x, y, z, w at 10-13)."""
+    x, y, z, w = np.asarray(state[10:14], dtype=np.float64) / np.linalg.norm(np.asarray(state[10:14], dtype=np.float64))
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])  # fmt: skip
+
+
+def command_to_ctbr(command: np.ndarray, state: np.ndarray, params: QuadrotorParams | None = None) -> np.ndarray:
+    """CTBR actions ``(..., 4)`` that fly acceleration commands ``(..., 4)`` from the state observations ``(..., 17)``.
+
+    Reads only what every agent observes (the attitude quaternion): the command, turned from the heading frame to
+    the world, goes through :func:`track_acceleration` with the fast expert's attitude gain, so the expert's own
+    command at a state reproduces its action there (tested).
+    """
+    params = params or QuadrotorParams()
+    command = np.asarray(command, dtype=np.float64)
+    state = np.asarray(state)
+    flat_command, flat_state = command.reshape(-1, 4), state.reshape(-1, state.shape[-1])
+    actions = np.empty((len(flat_command), 4), dtype=np.float32)
+    for k, (u, obs) in enumerate(zip(flat_command, flat_state, strict=True)):
+        rotation = rotation_from_state(obs)
+        yaw = heading_yaw(rotation)
+        c, s = math.cos(yaw), math.sin(yaw)
+        a = np.clip(u, -1.0, 1.0) * COMMAND_ACCEL_SCALE
+        accel = np.array([c * a[0] - s * a[1], s * a[0] + c * a[1], a[2]])
+        yaw_des = yaw + float(np.clip(u[3], -1.0, 1.0)) * COMMAND_YAW_SCALE
+        actions[k] = track_acceleration(accel, yaw_des, rotation, params, COMMAND_ATTITUDE_GAIN)
+    return actions.reshape(command.shape)
 
 
 class GateFollower:
@@ -69,4 +145,5 @@ class GateFollower:
         v_ref = to_carrot / max(dist, 1e-6) * min(self.speed, 2.0 * dist + 0.5)
         accel = self.velocity_gain * (v_ref - vel)
         heading = to_carrot if np.linalg.norm(to_carrot[:2]) > 0.3 else n
-        return acceleration_to_ctbr(accel, math.atan2(heading[1], heading[0]), rot, env.params)
+        self.command = (accel, math.atan2(heading[1], heading[0]))  # (world acceleration, heading) it flies
+        return acceleration_to_ctbr(accel, self.command[1], rot, env.params)

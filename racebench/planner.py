@@ -17,7 +17,7 @@ import math
 import numpy as np
 from numba import njit
 
-from racebench.control import GateFollower, acceleration_to_ctbr
+from racebench.control import GateFollower, acceleration_to_ctbr, track_acceleration
 from racebench.obstacles import _SEGMENT_STEP, _FreeSpace, find_corridor
 from racebench.quadrotor import QuadrotorParams
 from racebench.reward import wrap_angle
@@ -142,7 +142,9 @@ class PlannerAgent:
         """CTBR action for the env's current state (the observation itself is not needed)."""
         env = self.env
         if self.path is None:
-            return self._fallback.act_privileged(env)
+            action = self._fallback.act_privileged(env)
+            self.command = self._fallback.command
+            return action
         state = env.drone
         pos, vel = state.position, state.velocity
         # Progress along the path: nearest point within 0.4 m ahead of the last one. Never backwards, and
@@ -167,6 +169,7 @@ class PlannerAgent:
         yaw = math.atan2(state.rotation[1, 0], state.rotation[0, 0])
         if np.linalg.norm(v_ref[:2]) > 0.5:
             yaw += float(np.clip(wrap_angle(math.atan2(v_ref[1], v_ref[0]) - yaw), -0.5, 0.5))
+        self.command = (accel, yaw)
         return acceleration_to_ctbr(accel, yaw, state.rotation, env.params)
 
 
@@ -747,7 +750,9 @@ class FastPlannerAgent:
         """CTBR action for the env's current state."""
         env = self.env
         if self.path is None:
-            return self._fallback.act(obs)
+            action = self._fallback.act(obs)
+            self.command = self._fallback.command
+            return action
         state = env.drone
         pos, vel = state.position, state.velocity
         window = self.path[self._index : self._index + 20]
@@ -782,10 +787,5 @@ class FastPlannerAgent:
         if np.linalg.norm(heading[:2]) > 0.3:
             turn = wrap_angle(math.atan2(heading[1], heading[0]) - yaw)
             yaw += float(np.clip(turn, -self.max_yaw_error, self.max_yaw_error))
-        action = acceleration_to_ctbr(accel, yaw, rot, env.params, self.attitude_gain)
-        # Altitude first: while the body turns toward a new thrust direction, the projection of the wanted
-        # force on body z drops and the drone would sink; keep the vertical component instead.
-        if rot[2, 2] > 0.3:
-            vertical = env.params.mass * (accel[2] + env.params.gravity) / rot[2, 2]
-            action[0] = max(action[0], min(2.0 * vertical / env.params.max_thrust - 1.0, 1.0))
-        return action
+        self.command = (accel, yaw)  # what an acceleration student is taught (control.acceleration_command)
+        return track_acceleration(accel, yaw, rot, env.params, self.attitude_gain)

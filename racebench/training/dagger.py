@@ -49,6 +49,7 @@ import torch
 from tqdm.auto import tqdm
 
 from racebench.agents import BUILTIN_VERSIONS, load_agent
+from racebench.control import acceleration_command, command_to_ctbr
 from racebench.evaluation import EVAL_SEED_BASE
 from racebench.planner import FastPlannerAgent, PlannerAgent
 from racebench.raycast import BatchDepthRenderer
@@ -436,7 +437,8 @@ def observe(caster: BatchDepthRenderer, envs: list[Any], indices: list[int]) -> 
 
 
 def student_step(policy: Any, obs: list[dict], hidden: torch.Tensor | None) -> tuple[np.ndarray, torch.Tensor | None]:
-    """The student's deterministic actions (clipped to [-1, 1]) for a batch of observations, and a recurrent
+    """The student's deterministic actions (clipped to [-1, 1]; an acceleration student's commands flown through
+    :func:`~racebench.control.command_to_ctbr`, as the evaluator does) for a batch of observations, and a recurrent
     student's new GRU state from ``hidden`` ``(1, batch, H)`` (``None`` for a feed-forward one)."""
     batch = {"state": torch.from_numpy(np.stack([o["state"] for o in obs])),
              "depth": torch.from_numpy(np.stack([o["depth"] for o in obs]))}  # fmt: skip
@@ -446,7 +448,16 @@ def student_step(policy: Any, obs: list[dict], hidden: torch.Tensor | None) -> t
             actions, hidden = actions[0], output[-1:].clone()
         else:
             actions = student_mean(policy, batch)
-    return actions.numpy().clip(-1.0, 1.0), hidden
+    actions = actions.numpy().clip(-1.0, 1.0)
+    if student_output(policy) == "acceleration":
+        actions = command_to_ctbr(actions, batch["state"].numpy())
+    return actions, hidden
+
+
+def student_output(policy: Any) -> str:
+    """What the student's actor outputs (:data:`~racebench.training.policies.ACTION_OUTPUTS`), so what it is taught:
+    the teacher's CTBR actions, or its acceleration commands (:func:`~racebench.control.acceleration_command`)."""
+    return getattr(policy, "action_output", "ctbr")
 
 
 def line_ahead(teacher: Any, drone: Any) -> np.ndarray | None:
@@ -512,13 +523,15 @@ def collect(
     re-flies the last queued scene with probability ``replay_failed`` (taking it off the queue) instead of the next
     new seed. A replayed scene is not queued again: each scene is flown twice at most. With ``aux_task`` (one of
     :data:`AUX_TASKS`) every step is also stored with its auxiliary target (:func:`aux_target`; mask 0 where there
-    is none: the teacher has no line).
+    is none: the teacher has no line). An acceleration student (:func:`student_output`) is labelled with the teacher's
+    acceleration commands (its ``command`` after each ``act``) and flies its own through ``command_to_ctbr``.
     """
     caster = BatchDepthRenderer(envs[0].camera)
     replaying = replay_failed > 0.0 and failed is not None
     episode_seed, is_replay = [0] * len(envs), [False] * len(envs)
     replayed = 0
     recurrent = is_recurrent(policy)
+    commands = student_output(policy) == "acceleration"
     hidden = torch.zeros(1, len(envs), policy.lstm_actor.hidden_size) if recurrent else None
     segments: list[list[tuple[np.ndarray, ...]]] = [[] for _ in envs]
     no_line = np.zeros(PATH_AUX_SIZE, dtype=np.float32)
@@ -553,8 +566,12 @@ def collect(
     lengths_now = np.zeros(len(envs), dtype=int)
     while taken < steps:
         teacher = np.array([t.act() for t in teachers], dtype=np.float32).clip(-1.0, 1.0)
+        if commands:  # the label is what the teacher asked its last stage for, not what that stage sent
+            labels = np.stack([acceleration_command(*t.command, env.drone.rotation) for t, env in zip(teachers, envs)])
+        else:
+            labels = teacher
         for i in range(len(envs)):
-            step = (obs[i]["state"], obs[i]["depth"], teacher[i])
+            step = (obs[i]["state"], obs[i]["depth"], labels[i])
             if aux_task is not None:
                 target = aux_target(aux_task, teachers[i], envs[i])
                 step += (no_line, np.float32(0.0)) if target is None else (target, np.float32(1.0))

@@ -21,6 +21,9 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
 CNN_KINDS: tuple[str, ...] = ("paper", "strided", "fine")
+# What the actor outputs: "ctbr", the environment's action (collective thrust and body rates); "acceleration", an
+# acceleration command (racebench.control.command_to_ctbr turns it into CTBR from the observation; SB3Agent flies it).
+ACTION_OUTPUTS: tuple[str, ...] = ("ctbr", "acceleration")
 # (out channels, kernel, stride) of each conv of the CNNs that down-sample with strides alone.
 _STRIDED_CONVS: dict[str, tuple[tuple[int, int, int], ...]] = {
     "strided": ((16, 8, 4), (32, 4, 2), (32, 3, 1)),
@@ -171,13 +174,17 @@ class RecurrentGRUPolicy(RecurrentMultiInputActorCriticPolicy):
     """sb3-contrib's recurrent actor-critic with GRUs instead of LSTMs (see the module docstring).
 
     Works for Dict and Box observations (the features extractor handles both). With ``action_components`` >= 2
-    the actor's output layer is a :class:`MixtureActionHead` (the Gaussian's mean is its chosen candidate).
+    the actor's output layer is a :class:`MixtureActionHead` (the Gaussian's mean is its chosen candidate). With
+    ``action_output="acceleration"`` the actor's output is an acceleration command, not the env's action (see
+    :data:`ACTION_OUTPUTS`): whoever flies it converts it (``SB3Agent``, the DAgger collector).
     """
 
     def __init__(
         self, observation_space: gym.Space, action_space: gym.Space, lr_schedule, action_components: int = 1,
-        **kwargs: Any,
+        action_output: str = "ctbr", **kwargs: Any,
     ) -> None:  # fmt: skip
+        if action_output not in ACTION_OUTPUTS:
+            raise ValueError(f"action_output must be one of {ACTION_OUTPUTS}, got {action_output!r}")
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)
         if action_components > 1:
             latent = self.mlp_extractor.latent_dim_pi
@@ -190,10 +197,13 @@ class RecurrentGRUPolicy(RecurrentMultiInputActorCriticPolicy):
         # The parent built its optimizer over the LSTM parameters: rebuild it over the GRU ones.
         self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
         self.action_components = action_components
+        self.action_output = action_output
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
-        """The parent's, with ``action_components`` (what ``policy.save`` / ``load`` rebuild the policy from)."""
-        return {**super()._get_constructor_parameters(), "action_components": self.action_components}
+        """The parent's, with ``action_components`` and ``action_output`` (what ``policy.save`` / ``load`` rebuild
+        the policy from)."""
+        return {**super()._get_constructor_parameters(), "action_components": self.action_components,
+                "action_output": self.action_output}  # fmt: skip
 
     @staticmethod
     def _process_sequence(

@@ -48,7 +48,7 @@ from racebench.records import atomic_write
 from racebench.registration import CURRICULUM
 from racebench.sb3 import make_sb3_vec_env
 from racebench.track import BUILTIN_TRACKS
-from racebench.training.policies import CNN_KINDS
+from racebench.training.policies import ACTION_OUTPUTS, CNN_KINDS
 from racebench.vector import TEACHER_KEY
 
 BASELINES: tuple[str, ...] = (
@@ -158,6 +158,10 @@ class TrainConfig:
     # (racebench.training.dagger), so a PPO run takes it only to fine-tune such a student (init_from; train refuses
     # it otherwise).
     action_components: int = 1
+    # What the actor outputs (racebench.training.policies.ACTION_OUTPUTS): "ctbr", the env's action, or "acceleration",
+    # a command that racebench.control.command_to_ctbr flies from the observation (a DAgger student taught the fast
+    # expert's commands; the recurrent policy only; PPO refuses it: its env steps take CTBR).
+    action_output: str = "ctbr"
     torch_threads: int = 1  # learner threads while collecting: more oversubscribes the cores the env workers use
     update_threads: int = 2  # learner threads during the PPO update, when the env workers are idle
     # Fine-tuning: a checkpoint whose policy weights start the run ({track} and {seed} are filled in; only its
@@ -229,6 +233,8 @@ class TrainConfig:
             (self.cnn in CNN_KINDS, f"cnn must be one of {CNN_KINDS}"),
             (self.action_components >= 1, "action_components must be >= 1"),
             (self.action_components == 1 or self.recurrent, "action_components >= 2 needs the recurrent (GRU) policy"),
+            (self.action_output in ACTION_OUTPUTS, f"action_output must be one of {ACTION_OUTPUTS}"),
+            (self.action_output == "ctbr" or self.recurrent, "action_output acceleration needs the recurrent (GRU) policy"),
             (self.torch_threads >= 1 and self.update_threads >= 1, "torch_threads and update_threads must be >= 1"),
             (self.critic_warmup >= 0, "critic_warmup must be >= 0"),
             (self.bc_coef >= 0.0, "bc_coef must be >= 0"),
@@ -863,6 +869,8 @@ def make_model(config: TrainConfig, env: VecEnv, seed: int, tensorboard: str | N
         )
         if config.action_components > 1:  # only then: the policies saved before the key keep their kwargs
             policy_kwargs["action_components"] = config.action_components
+        if config.action_output != "ctbr":
+            policy_kwargs["action_output"] = config.action_output
         return RecurrentPPO(RecurrentGRUPolicy, env, policy_kwargs=policy_kwargs, **common)
     from stable_baselines3 import PPO
 
@@ -900,6 +908,11 @@ def train(
         raise ValueError(
             f"{config.name}: action_components {config.action_components} needs init_from (a mixture student to "
             "fine-tune): PPO trains only the chosen candidate, the scores learn from DAgger's mixture loss"
+        )
+    if config.action_output != "ctbr":  # PPO's rollouts step the env with the actor's output
+        raise ValueError(
+            f"{config.name}: action_output {config.action_output!r} is for DAgger students (PPO steps the env with "
+            "the actor's output, which must be the env's CTBR action)"
         )
     out = Path(out or Path("runs") / f"{config.name}-{track}-seed{seed}")
     out.mkdir(parents=True, exist_ok=True)
