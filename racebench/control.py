@@ -62,7 +62,9 @@ def track_acceleration(
 # wanted acceleration (gravity excluded) in the heading frame (world axes turned by the drone's yaw; z up), in units of
 # COMMAND_ACCEL_SCALE, and the heading change wanted, in units of COMMAND_YAW_SCALE. It is flown by
 # :func:`command_to_ctbr` from the observation alone; the fast expert's commands are its labels (acceleration_command).
-COMMAND_ACCEL_SCALE = 20.0  # m/s² per unit: the airframe's 24 m/s² of thrust, less gravity, stays within ±1
+# m/s² per unit, forward, left, up: the expert asks for up to ~26 m/s² sideways and ~8 m/s² vertically (feedforward and
+# feedback); the vertical unit is finer so that a thrust error costs the fit about what it costs a CTBR student.
+COMMAND_ACCEL_SCALE = np.array([30.0, 30.0, 10.0])
 COMMAND_YAW_SCALE = 0.5  # rad per unit: the fast expert turns by at most this much heading error (max_yaw_error)
 COMMAND_ATTITUDE_GAIN = 10.0  # the fast expert's attitude gain (FastPlannerAgent.attitude_gain)
 
@@ -77,10 +79,8 @@ def acceleration_command(accel: np.ndarray, yaw_des: float, rotation: np.ndarray
     acceleration ``accel`` (m/s², gravity excluded) at heading ``yaw_des`` (rad)."""
     yaw = heading_yaw(rotation)
     c, s = math.cos(yaw), math.sin(yaw)
-    command = np.array(
-        [(c * accel[0] + s * accel[1]) / COMMAND_ACCEL_SCALE, (c * accel[1] - s * accel[0]) / COMMAND_ACCEL_SCALE,
-         accel[2] / COMMAND_ACCEL_SCALE, wrap_angle(yaw_des - yaw) / COMMAND_YAW_SCALE],
-    )  # fmt: skip
+    heading_frame = np.array([c * accel[0] + s * accel[1], c * accel[1] - s * accel[0], accel[2]])
+    command = np.append(heading_frame / COMMAND_ACCEL_SCALE, wrap_angle(yaw_des - yaw) / COMMAND_YAW_SCALE)
     return command.clip(-1.0, 1.0).astype(np.float32)
 
 
@@ -110,7 +110,7 @@ def command_to_ctbr(command: np.ndarray, state: np.ndarray, params: QuadrotorPar
         rotation = rotation_from_state(obs)
         yaw = heading_yaw(rotation)
         c, s = math.cos(yaw), math.sin(yaw)
-        a = np.clip(u, -1.0, 1.0) * COMMAND_ACCEL_SCALE
+        a = np.clip(u[:3], -1.0, 1.0) * COMMAND_ACCEL_SCALE
         accel = np.array([c * a[0] - s * a[1], s * a[0] + c * a[1], a[2]])
         yaw_des = yaw + float(np.clip(u[3], -1.0, 1.0)) * COMMAND_YAW_SCALE
         actions[k] = track_acceleration(accel, yaw_des, rotation, params, COMMAND_ATTITUDE_GAIN)

@@ -442,3 +442,52 @@ def test_compiled_relax_gives_the_numpy_path_bit_for_bit(env_id: str) -> None:
             compared += 1
     env.close()
     assert compared >= 3
+
+
+def test_the_experts_acceleration_command_flown_from_the_observation_is_its_action(s_env):
+    """What an acceleration student is taught (``acceleration_command`` of the expert's ``command``), turned back into
+    CTBR by ``command_to_ctbr`` from the public state observation alone, is the expert's own action at every step of a
+    lap; the attitude read from the observed quaternion is the simulator's."""
+    from racebench.control import acceleration_command, command_to_ctbr, rotation_from_state
+
+    expert = FastPlannerAgent(integral_gain=0.0, gate_clearance=0.5, wanted_clearance=0.6)
+    obs, _ = s_env.reset(seed=1)
+    expert.reset(env=s_env.unwrapped)
+    state = s_env.unwrapped._state_vector
+    done, steps = False, 0
+    while not done:
+        action = expert.act(obs)
+        drone = s_env.unwrapped.drone
+        np.testing.assert_allclose(rotation_from_state(state()), drone.rotation, atol=1e-6)
+        command = acceleration_command(*expert.command, drone.rotation)
+        assert command.dtype == np.float32 and np.all(np.abs(command) <= 1.0)
+        np.testing.assert_allclose(command_to_ctbr(command, state()), action, atol=1e-5)
+        obs, _, terminated, truncated, info = s_env.step(action)
+        done, steps = terminated or truncated, steps + 1
+    assert info["is_success"] and steps > 100
+
+
+def test_an_acceleration_command_is_in_the_heading_frame():
+    """Level and facing +y (yaw 90 degrees), the command "forward at 10 m/s^2" tilts the thrust toward world +y: a
+    positive roll rate ... by the sign of the SO(3) error; and with no acceleration asked, hover thrust (the weight)."""
+    from racebench.control import COMMAND_ACCEL_SCALE, acceleration_command, command_to_ctbr, heading_yaw
+    from racebench.quadrotor import QuadrotorParams
+
+    params = QuadrotorParams()
+    yaw = math.pi / 2
+    rotation = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # body x along world +y
+    assert heading_yaw(rotation) == pytest.approx(yaw)
+    quat = np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
+    state = np.zeros(17, np.float32)
+    state[10:14] = quat
+    command = acceleration_command(np.array([0.0, 10.0, 0.0]), yaw, rotation)  # world +y is forward
+    np.testing.assert_allclose(command, [10.0 / COMMAND_ACCEL_SCALE[0], 0.0, 0.0, 0.0], atol=1e-7)
+    action = command_to_ctbr(command, state)
+    # pitch forward (body y rate > 0 tips body z toward body x), no roll, no yaw
+    assert action[2] > 0.0 and abs(action[1]) < 1e-6 and abs(action[3]) < 1e-6
+    hover = command_to_ctbr(np.zeros(4, np.float32), state)
+    assert (hover[0] + 1.0) / 2.0 * params.max_thrust == pytest.approx(params.mass * params.gravity, rel=1e-6)
+    np.testing.assert_allclose(hover[1:], 0.0, atol=1e-7)
+    # batched: one row per state
+    batch = command_to_ctbr(np.stack([command, np.zeros(4, np.float32)]), np.stack([state, state]))
+    np.testing.assert_allclose(batch, np.stack([action, hover]))
