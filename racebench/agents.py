@@ -650,8 +650,8 @@ def export_onnx(model: Any, path: str | Path) -> Path:
         raise ValueError(f"export_onnx: a GRU of {gru.num_layers} layers is not supported (1 layer)")
     if getattr(policy, "action_output", "ctbr") != "ctbr":
         raise ValueError(
-            f"export_onnx: the policy outputs {policy.action_output} commands, not the env's CTBR action (its controller, "
-            "racebench.control.command_to_ctbr, is not part of the network)"
+            f"export_onnx: the policy outputs {policy.action_output} commands, not the env's CTBR action (its "
+            "controller, racebench.control.command_to_ctbr, is not part of the network)"
         )
 
     class Actor(torch.nn.Module):

@@ -567,7 +567,8 @@ def collect(
     while taken < steps:
         teacher = np.array([t.act() for t in teachers], dtype=np.float32).clip(-1.0, 1.0)
         if commands:  # the label is what the teacher asked its last stage for, not what that stage sent
-            labels = np.stack([acceleration_command(*t.command, env.drone.rotation) for t, env in zip(teachers, envs)])
+            labels = np.stack([acceleration_command(*t.command, env.drone.rotation)
+                               for t, env in zip(teachers, envs, strict=True)])  # fmt: skip
         else:
             labels = teacher
         for i in range(len(envs)):

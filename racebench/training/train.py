@@ -234,7 +234,7 @@ class TrainConfig:
             (self.action_components >= 1, "action_components must be >= 1"),
             (self.action_components == 1 or self.recurrent, "action_components >= 2 needs the recurrent (GRU) policy"),
             (self.action_output in ACTION_OUTPUTS, f"action_output must be one of {ACTION_OUTPUTS}"),
-            (self.action_output == "ctbr" or self.recurrent, "action_output acceleration needs the recurrent (GRU) policy"),
+            (self.action_output == "ctbr" or self.recurrent, "action_output acceleration needs the recurrent policy"),
             (self.torch_threads >= 1 and self.update_threads >= 1, "torch_threads and update_threads must be >= 1"),
             (self.critic_warmup >= 0, "critic_warmup must be >= 0"),
             (self.bc_coef >= 0.0, "bc_coef must be >= 0"),
