@@ -998,3 +998,74 @@ def test_a_mixture_student_is_distilled_and_flown_by_the_evaluator_as_trained(tm
     student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + "\naction_components: 3\n")
     with pytest.raises(ValueError, match="needs init_from"):
         train(TrainConfig.from_yaml(student), "S", steps=64, out=tmp_path / "ppo", eval_episodes=0)
+
+
+def test_an_acceleration_student_is_taught_the_experts_commands_and_flown_through_the_controller(
+    tmp_path: Path,
+) -> None:
+    """A student with ``action_output: acceleration`` (experiment distill-accel's): every stored label is the expert's
+    acceleration command, which flown from the stored observation is the action the expert took; the distilled
+    checkpoint reloads with that output, and the evaluator flies its commands through ``command_to_ctbr`` exactly as
+    the training unroll computed them; ONNX export, PPO and a bad or feed-forward setting are refused by name."""
+    import gymnasium as gym
+    import torch
+
+    from racebench.agents import export_onnx, load_agent
+    from racebench.control import command_to_ctbr
+    from racebench.training.dagger import collect, make_student, student_features, student_unroll
+    from racebench.training.train import TrainConfig, train
+
+    student = tmp_path / "student.yaml"
+    student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + "\naction_output: acceleration\n")
+    env = gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast", gate_shift=0.3)
+    data = Dataset(capacity=200, depth_size=env.unwrapped.camera.size)
+    policy = make_student(env, seed=0, student=str(student)).policy
+    assert policy.action_output == "acceleration"
+    collect([env.unwrapped], [load_agent("planner-fast")], policy, beta=1.0, steps=100,
+            rng=np.random.default_rng(0), seeds=[5], dataset=data)  # fmt: skip
+    twin, expert = (
+        gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast", gate_shift=0.3),
+        load_agent("planner-fast"),
+    )
+    obs, _ = twin.reset(seed=5)
+    expert.reset(env=twin.unwrapped, seed=None)
+    for i in range(100):
+        action = np.clip(np.asarray(expert.act(obs), dtype=np.float32), -1.0, 1.0)
+        np.testing.assert_array_equal(data.state[i], obs["state"])
+        np.testing.assert_allclose(command_to_ctbr(data.action[i], data.state[i]), action, atol=1e-5)
+        assert np.abs(data.action[i] - action).max() > 1e-3  # a command, not the CTBR action
+        obs, *_ = twin.step(action)
+    twin.close()
+
+    config = DaggerConfig(iterations=2, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64, sequence_length=16,
+                          student=str(student), keep_iterations=2, final_student="average")  # fmt: skip
+    summary = distill(config, tmp_path / "run", eval_episodes=0)
+    agent = SB3Agent(summary["checkpoint"], trust_code=True)
+    policy = agent.model.policy
+    assert policy.action_output == "acceleration"
+    obs, _ = env.reset(seed=1_000_000)
+    agent.start(1)
+    agent.reset()
+    hidden = torch.zeros(1, 1, policy.lstm_actor.hidden_size)
+    for _ in range(3):
+        evaluated, single = agent.act_batch([obs])[0], agent.act(obs)
+        with torch.no_grad():
+            tensors = {k: torch.as_tensor(v[None]) for k, v in obs.items()}
+            command, output = student_unroll(policy, student_features(policy, tensors)[None], hidden)
+        hidden = output[-1:]
+        flown = command_to_ctbr(command[0, 0].numpy().clip(-1, 1), obs["state"])
+        np.testing.assert_allclose(evaluated, flown, atol=1e-6)
+        np.testing.assert_allclose(single, flown, atol=1e-6)
+        obs, *_ = env.step(evaluated)
+    env.close()
+    with pytest.raises(ValueError, match="outputs acceleration commands"):
+        export_onnx(agent.model, tmp_path / "accel.onnx")
+    with pytest.raises(ValueError, match="is for DAgger students"):
+        train(TrainConfig.from_yaml(student), "S", steps=64, out=tmp_path / "ppo", eval_episodes=0)
+    for bad, message in (
+        ("thrust", "action_output must be one of"),
+        ("acceleration\nrecurrent: false", "needs the recurrent"),
+    ):
+        student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + f"\naction_output: {bad}\n")
+        with pytest.raises(ValueError, match=message):
+            TrainConfig.from_yaml(student)
