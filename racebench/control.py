@@ -1,5 +1,9 @@
 """Geometric flight controller that turns a desired acceleration into a CTBR action.
 
+:func:`track_acceleration` is the fast expert's last stage; :func:`command_to_ctbr` flies an *acceleration command*
+(heading-frame acceleration and heading change, :func:`acceleration_command`) through it from a state observation
+alone, which is how a student that outputs commands instead of CTBR is flown (``action_output: acceleration``).
+
 :class:`GateFollower` is a privileged scripted agent: it reads the true gate poses and drone state and
 flies along each gate's axis through its opening, ignoring obstacles. It is the reference for
 obstacle-free flight (curriculum level 1) and the runnable default of ``racebench fly``.

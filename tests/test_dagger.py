@@ -1058,6 +1058,8 @@ def test_an_acceleration_student_is_taught_the_experts_commands_and_flown_throug
         np.testing.assert_allclose(single, flown, atol=1e-6)
         obs, *_ = env.step(evaluated)
     env.close()
+    with pytest.raises(ValueError, match="needs teacher planner-fast"):
+        DaggerConfig(student=str(student), teacher="planner").validate()
     with pytest.raises(ValueError, match="outputs acceleration commands"):
         export_onnx(agent.model, tmp_path / "accel.onnx")
     with pytest.raises(ValueError, match="is for DAgger students"):
