@@ -305,8 +305,8 @@ class DaggerConfig:
         if student.obs_mode != "vision":
             raise ValueError(f"{source}: student {self.student!r} must see depth (obs_mode vision)")
         if student.action_output == "acceleration" and self.teacher != "planner-fast":
-            raise ValueError(f"{source}: an acceleration student (student {self.student!r}) needs teacher planner-fast: "
-                             "its commands are flown by planner-fast's last stage (control.command_to_ctbr)")  # fmt: skip
+            raise ValueError(f"{source}: an acceleration student ({self.student!r}) needs teacher planner-fast: its "
+                             "commands are flown by planner-fast's last stage (control.command_to_ctbr)")  # fmt: skip
 
 
 class Dataset:
