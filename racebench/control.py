@@ -90,7 +90,8 @@ def acceleration_command(accel: np.ndarray, yaw_des: float, rotation: np.ndarray
 
 def rotation_from_state(state: np.ndarray) -> np.ndarray:
     """The body-to-world rotation matrix from a 17-float state observation (its quaternion x, y, z, w at 10-13)."""
-    x, y, z, w = np.asarray(state[10:14], dtype=np.float64) / np.linalg.norm(np.asarray(state[10:14], dtype=np.float64))
+    quat = np.asarray(state[10:14], dtype=np.float64)
+    x, y, z, w = quat / np.linalg.norm(quat)  # float32 in the observation: renormalised
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
