@@ -12,6 +12,7 @@ track variant flyable and gives the leaderboard an upper reference, it is not a 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -20,6 +21,7 @@ from numba import njit
 from racebench.control import GateFollower, acceleration_to_ctbr, track_acceleration
 from racebench.obstacles import _SEGMENT_STEP, _FreeSpace, find_corridor
 from racebench.quadrotor import QuadrotorParams
+from racebench.raycast import ObstacleSight
 from racebench.reward import wrap_angle
 from racebench.scene import _clearance_batch
 
@@ -520,6 +522,10 @@ def gate_crossings(path: np.ndarray, gates) -> list[int]:
     return crossings
 
 
+#: What :class:`FastPlannerAgent` knows of the obstacles: all of them (privileged), or those its camera has shown.
+OBSTACLE_KNOWLEDGE: tuple[str, ...] = ("all", "seen")
+
+
 class FastPlannerAgent:
     """Privileged fast expert: a racing line through the obstacle corridor, flown at the fastest speed
     profile the airframe's thrust allows and tracked with acceleration feedforward.
@@ -568,6 +574,14 @@ class FastPlannerAgent:
             closer to something than the narrowest corridor (0.21 m) no plan is found and the old one is kept
             (counted in ``replan_failures``); a drone past a gate's approach point may be sent back to it.
         replan_interval: least time between two replans, s (a plan costs ~0.15 s of CPU).
+        obstacle_knowledge: ``"all"`` (the built-in): every obstacle is known from reset, the line bends for
+            obstacles the camera has not shown yet. ``"seen"``: only obstacles the onboard camera has shown so far
+            (:class:`~racebench.raycast.ObstacleSight`: at least one depth pixel, occlusion and range included)
+            are planned around; it plans at reset around those in view and, whenever one comes into view within
+            ``wanted_clearance`` of the line still to fly, plans again from the drone's state (no
+            ``replan_interval`` wait; counted in ``sighting_replans``). Gates are always known (the state
+            observation points at them). A DAgger teacher whose labels depend only on what the student could
+            have seen (:mod:`racebench.training.dagger`, ``teacher_obstacles``).
     """
 
     name = "planner-fast"
@@ -597,12 +611,21 @@ class FastPlannerAgent:
         braking_jerk: float | None = 60.0,
         replan_distance: float | None = None,
         replan_interval: float = 0.3,
+        obstacle_knowledge: str = "all",
     ) -> None:
         for name, value in (
             ("thrust_accel", thrust_accel), ("braking_jerk", braking_jerk), ("replan_distance", replan_distance)
         ):  # fmt: skip
             if value is not None and not value > 0:
                 raise ValueError(f"FastPlannerAgent: {name} must be a positive number or None, got {value!r}")
+        if obstacle_knowledge not in OBSTACLE_KNOWLEDGE:
+            raise ValueError(
+                f"FastPlannerAgent: obstacle_knowledge must be one of {OBSTACLE_KNOWLEDGE}, got {obstacle_knowledge!r}"
+            )
+        self.obstacle_knowledge = obstacle_knowledge
+        self.sighting_replans = 0  # replans this episode because an obstacle came into view near the line
+        self.known: np.ndarray | None = None  # per obstacle of the scene: planned around (True once seen)
+        self._sight: ObstacleSight | None = None
         if not replan_interval >= 0:
             raise ValueError(f"FastPlannerAgent: replan_interval must be >= 0 s, got {replan_interval!r}")
         self.replan_distance = replan_distance
@@ -728,23 +751,58 @@ class FastPlannerAgent:
         self.env = env
         self.replans = 0
         self.replan_failures = 0
+        self.sighting_replans = 0
         self._last_replan = -math.inf
-        if not self.plan(env.scene, env.drone.position, float(np.linalg.norm(env.drone.velocity)), env.params):
+        scene = env.scene
+        if self.obstacle_knowledge == "seen":
+            self._sight = ObstacleSight(env.camera, scene)
+            self.known = self._sight.in_view(env.drone.position, env.drone.rotation)
+        else:
+            self._sight, self.known = None, np.ones(len(scene.obstacles), dtype=bool)
+        if not self.plan(self.known_scene(), env.drone.position, float(np.linalg.norm(env.drone.velocity)), env.params):
             self.path = None
+            # The cautious fallback plans around every obstacle: a "seen" teacher finds no plan only when even
+            # the obstacles in view leave no corridor, which the full scene cannot widen.
             self._fallback.reset(env)
 
-    def _replan(self) -> None:
-        """Plan again from the drone's state through the gates it has still to pass (keep the plan if none)."""
+    def known_scene(self):
+        """The env's scene with only the obstacles this agent knows of (all, or those seen so far)."""
+        scene = self.env.scene
+        if self.known is None or self.known.all():
+            return scene
+        kept = tuple(o for o, k in zip(scene.obstacles, self.known, strict=True) if k)
+        return dataclasses.replace(scene, obstacles=kept)
+
+    def _replan(self, wait: bool = True) -> None:
+        """Plan again from the drone's state through the gates it has still to pass (keep the plan if none);
+        ``wait``: not sooner than ``replan_interval`` after the last one."""
         env = self.env
         now = env.steps / env.control_freq
-        if now - self._last_replan < self.replan_interval or env.next_gate >= len(env.scene.gates):
+        if (wait and now - self._last_replan < self.replan_interval) or env.next_gate >= len(env.scene.gates):
             return
         self._last_replan = now
-        ahead = env.scene.ahead(env.next_gate)  # the frames already passed are still in the way
+        ahead = self.known_scene().ahead(env.next_gate)  # the frames already passed are still in the way
         if self.plan(ahead, env.drone.position, float(np.linalg.norm(env.drone.velocity)), env.params):
             self.replans += 1
         else:
             self.replan_failures += 1
+
+    def _look(self) -> bool:
+        """Mark the obstacles now in view as known; ``True`` when one of them lies within ``wanted_clearance`` of
+        the line still to fly (the plan must change)."""
+        unknown = np.flatnonzero(~self.known)
+        if len(unknown) == 0:
+            return False
+        state = self.env.drone
+        new = unknown[self._sight.in_view(state.position, state.rotation, unknown)]
+        if len(new) == 0:
+            return False
+        self.known[new] = True
+        if self.path is None:
+            return False
+        scene = self.env.scene
+        sighted = dataclasses.replace(scene, gates=(), obstacles=tuple(scene.obstacles[j] for j in new))
+        return bool(sighted.distance(self.path[self._index :]).min() < self.wanted_clearance)
 
     def act(self, obs=None) -> np.ndarray:
         """CTBR action for the env's current state."""
@@ -757,6 +815,10 @@ class FastPlannerAgent:
         pos, vel = state.position, state.velocity
         window = self.path[self._index : self._index + 20]
         self._index += int(np.argmin(np.linalg.norm(window - pos, axis=1)))
+        if self._sight is not None and self._look():
+            replans = self.replans
+            self._replan(wait=False)
+            self.sighting_replans += self.replans - replans
         if self.replan_distance is not None and np.linalg.norm(self.path[self._index] - pos) > self.replan_distance:
             self._replan()
         i = self._index

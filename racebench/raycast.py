@@ -34,6 +34,7 @@ array work. Compiled loops skip it: about 50 µs a frame.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from functools import lru_cache
@@ -235,6 +236,46 @@ class BatchDepthRenderer:
     def render_one(self, scene: Scene, position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
         """Depth image ``(size, size)`` float32 of one drone (the drop-in for ``DepthCamera.depth``)."""
         return self.render([scene], position, rotation)[0]
+
+
+class ObstacleSight:
+    """Which obstacles of one scene the onboard camera shows: obstacle ``j`` is in view when it is the nearest
+    surface on at least ``min_pixels`` pixels of the noise-free depth image, i.e. rendering the scene without it
+    makes those pixels deeper by more than ``margin`` (the definition ``baselines/crash_visibility.py`` uses).
+    Occlusion, the 90° field of view and the 10 m range all count; one batched render of the scene and of the
+    scene without each obstacle asked about.
+
+    Args:
+        camera: the onboard camera model.
+        scene: the scene the drone flies in.
+        margin: depth change (m) that makes a pixel the obstacle's.
+        min_pixels: pixels an obstacle must cover to be in view.
+    """
+
+    def __init__(self, camera: DepthCamera, scene: Scene, margin: float = 0.01, min_pixels: int = 1) -> None:
+        self.renderer = BatchDepthRenderer(camera)
+        self.scene = scene
+        self.margin = margin
+        self.min_pixels = min_pixels
+        # Built once per scene so the renderer's per-scene packing is reused from call to call.
+        obstacles = scene.obstacles
+        self._without = [
+            dataclasses.replace(scene, obstacles=obstacles[:j] + obstacles[j + 1 :]) for j in range(len(obstacles))
+        ]
+
+    def pixels(self, position: np.ndarray, rotation: np.ndarray, which: Sequence[int] | None = None) -> np.ndarray:
+        """Pixels where each obstacle of ``which`` (default: all) is the nearest surface, camera at the body pose."""
+        which = range(len(self._without)) if which is None else which
+        scenes = [self.scene] + [self._without[j] for j in which]
+        if len(scenes) == 1:
+            return np.zeros(0, dtype=np.int64)
+        n = len(scenes)
+        images = self.renderer.render(scenes, np.broadcast_to(position, (n, 3)), np.broadcast_to(rotation, (n, 3, 3)))
+        return ((images[1:] - images[0]) > self.margin).sum(axis=(1, 2))
+
+    def in_view(self, position: np.ndarray, rotation: np.ndarray, which: Sequence[int] | None = None) -> np.ndarray:
+        """Boolean per obstacle of ``which`` (default: all): in view from the body pose."""
+        return self.pixels(position, rotation, which) >= self.min_pixels
 
 
 @njit(cache=True, error_model="numpy")

@@ -51,7 +51,7 @@ from tqdm.auto import tqdm
 from racebench.agents import BUILTIN_VERSIONS, load_agent
 from racebench.control import acceleration_command, command_to_ctbr
 from racebench.evaluation import EVAL_SEED_BASE
-from racebench.planner import FastPlannerAgent, PlannerAgent
+from racebench.planner import OBSTACLE_KNOWLEDGE, FastPlannerAgent, PlannerAgent
 from racebench.raycast import BatchDepthRenderer
 from racebench.training.policies import MixtureActionHead, mixture_action_loss
 
@@ -140,6 +140,10 @@ class DaggerConfig:
     teacher_integral_gain: float = 4.0
     # planner-fast plans again from a student that is farther than this from its line (m; None: never)
     teacher_replan_distance: float | None = None
+    # What planner-fast plans around (FastPlannerAgent.obstacle_knowledge): "all" obstacles from reset (privileged),
+    # or only those the student's camera has shown so far ("seen"; it plans again when one comes into view near its
+    # line), so a label depends only on what the student could have seen.
+    teacher_obstacles: str = "all"
     student: str = "vision-ppo"  # the PPO baseline config whose network the student is (vision-ppo: the paper's)
     # With a student of ``action_components`` >= 2 (a MixtureActionHead) the fit minimises the mixture's scaled
     # negative log-likelihood (policies.mixture_action_loss) with Gaussians of this standard deviation (in actions
@@ -259,14 +263,19 @@ class DaggerConfig:
                 "teacher_replan_distance must be > 0 m (or null: never replan)",
             ),
             (
+                self.teacher_obstacles in OBSTACLE_KNOWLEDGE,
+                f"teacher_obstacles must be one of {OBSTACLE_KNOWLEDGE}, got {self.teacher_obstacles!r}",
+            ),
+            (
                 self.teacher == "planner-fast"
                 or (
                     self.teacher_integral_gain == 4.0
                     and self.teacher_replan_distance is None
                     and self.teacher_wanted_clearance == 0.45
+                    and self.teacher_obstacles == "all"
                 ),
-                "teacher_integral_gain, teacher_replan_distance and teacher_wanted_clearance apply to teacher "
-                "planner-fast only",
+                "teacher_integral_gain, teacher_replan_distance, teacher_wanted_clearance and teacher_obstacles apply "
+                "to teacher planner-fast only",
             ),
         ]
         checks.append((self.update_threads >= 1, "update_threads must be >= 1"))
@@ -726,6 +735,7 @@ def make_teacher(config: DaggerConfig) -> PlannerAgent | FastPlannerAgent:
             wanted_clearance=config.teacher_wanted_clearance,
             integral_gain=config.teacher_integral_gain,
             replan_distance=config.teacher_replan_distance,
+            obstacle_knowledge=config.teacher_obstacles,
         )
     return load_agent(config.teacher)
 
