@@ -131,6 +131,10 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(teacher_integral_gain=-1.0).validate()
     with pytest.raises(ValueError, match="teacher_replan_distance must be > 0"):
         DaggerConfig(teacher_replan_distance=0.0).validate()
+    with pytest.raises(ValueError, match="teacher_obstacles must be one of"):
+        DaggerConfig(teacher_obstacles="visible").validate()
+    with pytest.raises(ValueError, match="apply to teacher planner-fast only"):
+        DaggerConfig(teacher="planner", teacher_obstacles="seen").validate()
     with pytest.raises(ValueError, match="apply to teacher planner-fast only"):
         DaggerConfig(teacher="planner", teacher_integral_gain=0.0).validate()
     with pytest.raises(ValueError, match="gate_shift_z must be >= 0"):
@@ -233,6 +237,8 @@ def test_the_teacher_is_built_with_its_settings() -> None:
     assert (stateless.integral_gain, stateless.replan_distance) == (0.0, 0.5)
     assert default.wanted_clearance == FastPlannerAgent().wanted_clearance == 0.45
     assert make_teacher(DaggerConfig(teacher_wanted_clearance=0.6)).wanted_clearance == 0.6
+    assert default.obstacle_knowledge == "all"
+    assert make_teacher(DaggerConfig(teacher_obstacles="seen")).obstacle_knowledge == "seen"
 
 
 def test_training_scenes_take_the_configs_gate_shifts() -> None:

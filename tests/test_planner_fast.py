@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import math
 from pathlib import Path
@@ -24,6 +25,7 @@ from racebench.planner import (
     scene_clearance,
     thrust_limited_speeds,
 )
+from racebench.raycast import ObstacleSight
 from racebench.rollout import run_episode
 from racebench.track import Gate
 
@@ -491,3 +493,74 @@ def test_an_acceleration_command_is_in_the_heading_frame():
     # batched: one row per state
     batch = command_to_ctbr(np.stack([command, np.zeros(4, np.float32)]), np.stack([state, state]))
     np.testing.assert_allclose(batch, np.stack([action, hover]))
+
+
+def _without(scene, drop):
+    """``scene`` without the obstacles whose indices are in ``drop``."""
+    return dataclasses.replace(scene, obstacles=tuple(o for j, o in enumerate(scene.obstacles) if j not in drop))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_seen_only_expert_plans_at_reset_around_what_the_camera_shows(s_env, seed):
+    """At reset the "seen" expert knows exactly the obstacles in view from the start pose, and its line is the
+    privileged expert's line in the scene without the others; on these scenes an obstacle out of view lies within
+    the privileged line's berth, so the privileged line differs (it bends for what the camera has not shown)."""
+    s_env.reset(seed=seed)
+    env = s_env.unwrapped
+    seen = FastPlannerAgent(obstacle_knowledge="seen")
+    seen.reset(env)
+    sight = ObstacleSight(env.camera, env.scene)
+    np.testing.assert_array_equal(seen.known, sight.in_view(env.drone.position, env.drone.rotation))
+    hidden = set(np.flatnonzero(~seen.known).tolist())
+    assert hidden and seen.known.any()
+    reference = FastPlannerAgent()
+    assert reference.plan(_without(env.scene, hidden), env.drone.position, 0.0, env.params)
+    np.testing.assert_array_equal(seen.path, reference.path)
+    privileged = FastPlannerAgent()
+    privileged.reset(env)
+    assert privileged.known.all()
+    assert seen.path.shape != privileged.path.shape or not np.array_equal(seen.path, privileged.path)
+
+
+def test_a_seen_only_experts_knowledge_is_what_its_camera_has_shown_over_a_lap(s_env):
+    """Flying a lap, the expert's known obstacles after each step are those in view at any step so far (checked
+    with a separate sight), at least one comes into view near its line and makes it plan again, and it finishes."""
+    s_env.reset(seed=1)
+    env = s_env.unwrapped
+    agent = FastPlannerAgent(obstacle_knowledge="seen")
+    agent.reset(env)
+    sight = ObstacleSight(env.camera, env.scene)
+    shown = sight.in_view(env.drone.position, env.drone.rotation)
+    info: dict = {}
+    for _ in range(1000):
+        shown |= sight.in_view(env.drone.position, env.drone.rotation)
+        action = agent.act()
+        np.testing.assert_array_equal(agent.known, shown)
+        _, _, terminated, truncated, info = s_env.step(action)
+        if terminated or truncated:
+            break
+    assert info["is_success"], info
+    assert agent.sighting_replans >= 1 and agent.replan_failures == 0
+    assert agent.replans == agent.sighting_replans  # no replan_distance: every replan came from a sighting
+
+
+def test_a_sighting_replans_only_when_the_new_obstacle_is_near_the_line(s_env):
+    """Forgetting an obstacle in view, the next look marks it known again and asks for a new plan exactly when it
+    lies within the berth (``wanted_clearance``) of the line still to fly."""
+    s_env.reset(seed=2)
+    env = s_env.unwrapped
+    agent = FastPlannerAgent(obstacle_knowledge="seen")
+    agent.reset(env)
+    in_view = np.flatnonzero(agent.known)
+    for j in in_view:  # forget one obstacle in view at a time: looking again marks it known
+        agent.known[j] = False
+        single = dataclasses.replace(env.scene, gates=(), obstacles=(env.scene.obstacles[j],))
+        near = float(single.distance(agent.path).min()) < agent.wanted_clearance
+        assert agent._look() is near
+        assert agent.known[j]
+    assert agent._look() is False  # nothing new in view
+
+
+def test_an_unknown_obstacle_knowledge_is_refused():
+    with pytest.raises(ValueError, match="obstacle_knowledge must be one of"):
+        FastPlannerAgent(obstacle_knowledge="some")

@@ -12,7 +12,7 @@ from racebench.benchmark import depth_agreement, rotation_from_euler, sample_cam
 from racebench.camera import DepthCamera
 from racebench.env import RaceEnv
 from racebench.quadrotor import QuadrotorParams
-from racebench.raycast import BatchDepthRenderer, cylinder_hull
+from racebench.raycast import BatchDepthRenderer, ObstacleSight, cylinder_hull
 from racebench.scene import Obstacle, Scene, arena_bounds
 from racebench.simulation import Simulation
 from racebench.track import load_track
@@ -195,3 +195,52 @@ def test_rotation_from_euler_is_a_rotation() -> None:
     np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(r) == pytest.approx(1.0)
     np.testing.assert_allclose(rotation_from_euler(math.pi / 2, 0.0, 0.0)[:, 0], [0.0, 1.0, 0.0], atol=1e-12)
+
+
+def _sight_scene(*obstacles: Obstacle) -> Scene:
+    """A scene of just these obstacles (no gates) on the S track's arena, the camera's frame at the origin."""
+    track = load_track("S")
+    low, high = arena_bounds(track)
+    return Scene(track, (), tuple(obstacles), np.zeros(3), 0.0, low, high)
+
+
+def _pole(x: float, y: float, radius: float = 0.2, height: float = 3.0) -> Obstacle:
+    return Obstacle("cylinder", np.array([x, y, height / 2.0]), (radius, height))
+
+
+@pytest.mark.parametrize(
+    ("where", "in_view"),
+    [
+        ((3.0, 0.0), True),  # straight ahead
+        ((-3.0, 0.0), False),  # behind the camera
+        ((11.0, 0.0), False),  # beyond the 10 m range
+        ((3.0, 4.0), False),  # 53° to the left: outside the 90° field of view, pole radius included
+        ((3.0, 2.5), True),  # 40° to the left: inside it
+        ((3.0, -2.5), True),  # and to the right
+    ],
+)
+def test_obstacle_sight_needs_the_field_of_view_and_the_range(where, in_view) -> None:
+    """An obstacle is in view when the camera's frustum holds part of it within range (body at 1 m, level)."""
+    scene = _sight_scene(_pole(*where))
+    sight = ObstacleSight(DepthCamera(), scene)
+    assert sight.in_view(np.array([0.0, 0.0, 1.0]), np.eye(3)).tolist() == [in_view]
+
+
+def test_obstacle_sight_counts_occlusion_and_agrees_with_a_pixel_count() -> None:
+    """A pole behind a wall is not in view while the wall is; without the wall it is. The pixel count equals the
+    pixels where the pole is the nearest surface (rendered with and without it)."""
+    wall = Obstacle("box", np.array([3.0, 0.0, 2.0]), (0.2, 1.5, 2.0))
+    pole = _pole(6.0, 0.0)
+    pose = (np.array([0.0, 0.0, 1.0]), np.eye(3))
+    assert ObstacleSight(DepthCamera(), _sight_scene(wall, pole)).in_view(*pose).tolist() == [True, False]
+    alone = ObstacleSight(DepthCamera(), _sight_scene(pole))
+    renderer = BatchDepthRenderer(DepthCamera())
+    with_pole = renderer.render_one(_sight_scene(pole), *pose)
+    without = renderer.render_one(_sight_scene(), *pose)
+    expected = int(((without - with_pole) > 0.01).sum())
+    assert expected > 0
+    assert alone.pixels(*pose).tolist() == [expected]
+    # Asking about a subset answers for that subset, in its order.
+    both = ObstacleSight(DepthCamera(), _sight_scene(pole, wall))
+    np.testing.assert_array_equal(both.pixels(*pose, [1, 0]), both.pixels(*pose)[::-1])
+    assert both.pixels(*pose, []).shape == (0,)
