@@ -23,7 +23,7 @@ from racebench.obstacles import _SEGMENT_STEP, _FreeSpace, find_corridor
 from racebench.quadrotor import QuadrotorParams
 from racebench.raycast import ObstacleSight
 from racebench.reward import wrap_angle
-from racebench.scene import _clearance_batch
+from racebench.scene import Scene, _clearance_batch
 
 
 def speed_profile(
@@ -765,7 +765,7 @@ class FastPlannerAgent:
             # the obstacles in view leave no corridor, which the full scene cannot widen.
             self._fallback.reset(env)
 
-    def known_scene(self):
+    def known_scene(self) -> Scene:
         """The env's scene with only the obstacles this agent knows of (all, or those seen so far)."""
         scene = self.env.scene
         if self.known is None or self.known.all():
