@@ -35,11 +35,7 @@ from racebench.training.train import load_config
 def bends_for_the_unseen(env, teacher) -> bool:
     """Whether ``teacher``'s line, planned at reset, passes within its berth of an obstacle not in view then."""
     sight = ObstacleSight(env.camera, env.scene)
-    hidden = np.flatnonzero(~sight.in_view(env.drone.position, env.drone.rotation))
-    if teacher.path is None or len(hidden) == 0:
-        return False
-    unseen = dataclasses.replace(env.scene, gates=(), obstacles=tuple(env.scene.obstacles[j] for j in hidden))
-    return bool(unseen.distance(teacher.path).min() < teacher.wanted_clearance)
+    return teacher.line_passes_near(np.flatnonzero(~sight.in_view(env.drone.position, env.drone.rotation)))
 
 
 def main() -> None:

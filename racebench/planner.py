@@ -798,11 +798,16 @@ class FastPlannerAgent:
         if len(new) == 0:
             return False
         self.known[new] = True
-        if self.path is None:
+        return self.line_passes_near(new)
+
+    def line_passes_near(self, obstacles: np.ndarray) -> bool:
+        """Whether the line still to fly passes within ``wanted_clearance`` of any of the env scene's obstacles with
+        these indices (``False`` without a line or indices)."""
+        if self.path is None or len(obstacles) == 0:
             return False
         scene = self.env.scene
-        sighted = dataclasses.replace(scene, gates=(), obstacles=tuple(scene.obstacles[j] for j in new))
-        return bool(sighted.distance(self.path[self._index :]).min() < self.wanted_clearance)
+        chosen = dataclasses.replace(scene, gates=(), obstacles=tuple(scene.obstacles[j] for j in obstacles))
+        return bool(chosen.distance(self.path[self._index :]).min() < self.wanted_clearance)
 
     def act(self, obs=None) -> np.ndarray:
         """CTBR action for the env's current state."""
