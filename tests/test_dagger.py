@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 from pathlib import Path
@@ -264,6 +265,50 @@ def test_training_scenes_take_the_configs_gate_shifts() -> None:
     finally:
         for env in paper + default:
             env.close()
+
+
+def test_a_student_of_several_tracks_gets_an_equal_share_of_each(tmp_path: Path) -> None:
+    """train_tracks: env i flies train_tracks[i % len]; bad lists are named; YAML reads the list."""
+    from racebench.training.dagger import make_training_envs, training_env_ids
+
+    config = DaggerConfig(n_envs=6, train_tracks=["S", "J", "Circle"])
+    config.validate()
+    assert training_env_ids(config) == ["RaceObs-S-v0", "RaceObs-J-v0", "RaceObs-Circle-v0"] * 2
+    assert training_env_ids(DaggerConfig(n_envs=2, track="J")) == ["RaceObs-J-v0"] * 2  # one track: as before
+    made = make_training_envs(dataclasses.replace(config, n_envs=3, gate_shift=0.5))
+    try:
+        assert [m.unwrapped.spec.id for m in made] == ["RaceObs-S-v0", "RaceObs-J-v0", "RaceObs-Circle-v0"]
+        assert [m.unwrapped.track.name for m in made] == ["S", "J", "Circle"]
+        assert all(m.unwrapped.generator.gate_shift == 0.5 for m in made)
+    finally:
+        for m in made:
+            m.close()
+    for bad in (["S", "Q"], ["S", "S"], "S"):
+        with pytest.raises(ValueError, match="train_tracks must be a list of distinct tracks"):
+            DaggerConfig(n_envs=4, train_tracks=bad).validate()  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="n_envs a multiple of its length"):
+        DaggerConfig(n_envs=16, train_tracks=["S", "J", "Circle"]).validate()
+    with pytest.raises(ValueError, match="n_envs a multiple of its length"):
+        DaggerConfig(n_envs=4, train_tracks=["S", "J"], env_id="RaceObs-S-Density5-v0").validate()
+    path = tmp_path / "multi.yaml"
+    path.write_text("method: dagger\nname: multi\nn_envs: 18\ntrain_tracks: [S, J, Circle]\n")
+    assert DaggerConfig.from_yaml(path).train_tracks == ["S", "J", "Circle"]
+    with pytest.raises(ValueError, match="run's track 'Circle' is not one of train_tracks"):
+        distill(DaggerConfig(track="Circle", n_envs=2, train_tracks=["S", "J"]), tmp_path / "run")
+
+
+def test_a_tiny_distillation_of_one_student_for_two_tracks(tmp_path: Path) -> None:
+    """Both tracks are flown and scored in progress.csv, and the final evaluation flies each track's main id."""
+    config = DaggerConfig(track="J", iterations=1, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64,
+                          train_tracks=["S", "J"])  # fmt: skip
+    summary = distill(config, tmp_path, eval_episodes=1)
+    progress = pd.read_csv(tmp_path / "progress.csv")
+    assert {"success_rate_S", "success_rate_J"} <= set(progress.columns)
+    assert sorted(summary["eval_tracks"]) == ["RaceObs-J-v0", "RaceObs-S-v0"]
+    assert summary["eval"] == summary["eval_tracks"]["RaceObs-J-v0"]  # the run's own track, as for one track
+    assert Path(summary["checkpoint"]).name == "vision-dagger-J.zip"
+    episodes = pd.read_csv(tmp_path / "eval" / "episodes.csv")
+    assert sorted(episodes["env_id"]) == ["RaceObs-J-v0", "RaceObs-S-v0"]
 
 
 def test_a_tiny_distillation_run(tmp_path: Path) -> None:

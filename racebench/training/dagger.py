@@ -39,7 +39,7 @@ import json
 import shutil
 import time
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +53,7 @@ from racebench.control import acceleration_command, command_to_ctbr
 from racebench.evaluation import EVAL_SEED_BASE
 from racebench.planner import OBSTACLE_KNOWLEDGE, FastPlannerAgent, PlannerAgent
 from racebench.raycast import BatchDepthRenderer
+from racebench.registration import TRACK_IDS
 from racebench.training.policies import MixtureActionHead, mixture_action_loss
 
 TEACHERS: tuple[str, ...] = ("planner-fast", "planner")  # privileged built-ins that can label every state
@@ -87,6 +88,12 @@ class DaggerConfig:
     name: str = "vision-dagger"  # the run's name: checkpoint <name>-<track>.zip, sweep folders, table labels
     track: str = "S"
     env_id: str = ""  # default: RaceObs-<track>-v0, the evaluation task (density 3, v_d 8 m/s)
+    # One student for several tracks (empty: the run's track alone): env i of the n_envs flies the main id of
+    # train_tracks[i % len], so every track gets the same share of the steps, and the final evaluation flies each
+    # track's main id (the run's --track, one of them, names the checkpoint). Why: obstacle avoidance, what ends most
+    # of the students' failed laps, does not depend on the track, and more data is the one lever measured to help
+    # (experiments/distill-more-data/); the issue counts a policy for all three tracks as a plus.
+    train_tracks: list[str] = field(default_factory=list)
     iterations: int = 8
     steps_per_iteration: int = 20_000  # environment steps collected per iteration
     n_envs: int = 16  # envs flown side by side (one batched student call per step)
@@ -217,7 +224,16 @@ class DaggerConfig:
 
     def validate(self, source: str = "dagger") -> None:
         """Raise ``ValueError`` naming the first bad setting."""
+        tracks = self.train_tracks
         checks = [
+            (
+                isinstance(tracks, list) and all(t in TRACK_IDS for t in tracks) and len(set(tracks)) == len(tracks),
+                f"train_tracks must be a list of distinct tracks from {sorted(TRACK_IDS)}, got {tracks!r}",
+            ),
+            (
+                not tracks or (self.n_envs % len(tracks) == 0 and not self.env_id),
+                "train_tracks needs n_envs a multiple of its length (an equal share per track) and no env_id",
+            ),
             (self.iterations >= 1, "iterations must be >= 1"),
             (self.steps_per_iteration >= self.n_envs >= 1, "need steps_per_iteration >= n_envs >= 1"),
             (0.0 <= self.beta_decay <= 1.0, "beta_decay must be in [0, 1]"),
@@ -522,6 +538,7 @@ def collect(
     replay_failed: float = 0.0,
     failed: list[int] | None = None,
     aux_task: str | None = None,
+    groups: list[str] | None = None,
 ) -> dict[str, float]:
     """Fly ``steps`` env steps with the beta-mixture of teacher and student; label every step with the teacher.
 
@@ -537,6 +554,7 @@ def collect(
     :data:`AUX_TASKS`) every step is also stored with its auxiliary target (:func:`aux_target`; mask 0 where there
     is none: the teacher has no line). An acceleration student (:func:`student_output`) is labelled with the teacher's
     acceleration commands (its ``command`` after each ``act``) and flies its own through ``command_to_ctbr``.
+    With ``groups`` (a label per env: its track) the stats also hold ``success_rate_<label>`` per label.
     """
     caster = BatchDepthRenderer(envs[0].camera)
     replaying = replay_failed > 0.0 and failed is not None
@@ -575,6 +593,7 @@ def collect(
         start(i)
     obs = observe(caster, envs, list(range(len(envs))))
     successes, lengths, taken = [], [], 0
+    finished_by: list[int] = []  # the env that flew each finished episode
     lengths_now = np.zeros(len(envs), dtype=int)
     while taken < steps:
         teacher = np.array([t.act() for t in teachers], dtype=np.float32).clip(-1.0, 1.0)
@@ -597,6 +616,7 @@ def collect(
             lengths_now[i] += 1
             if terminated or truncated:
                 successes.append(bool(info["is_success"]))
+                finished_by.append(i)
                 if replaying and not info["is_success"] and not is_replay[i]:
                     failed.append(episode_seed[i])
                 lengths.append(int(lengths_now[i]))
@@ -613,6 +633,9 @@ def collect(
         "success_rate": float(np.mean(successes)) if successes else float("nan"),
         "mean_length": float(np.mean(lengths)) if lengths else float("nan"),
     }
+    for label in dict.fromkeys(groups or []):
+        mine = [ok for ok, i in zip(successes, finished_by, strict=True) if groups[i] == label]
+        stats[f"success_rate_{label}"] = float(np.mean(mine)) if mine else float("nan")
     if replaying:
         stats["replayed"] = replayed  # episodes that re-flew a failed scene
     return stats
@@ -719,12 +742,19 @@ def choose_student(
     return {**rows[chosen], "chosen_by": config.final_student}
 
 
+def training_env_ids(config: DaggerConfig) -> list[str]:
+    """The id each of the ``n_envs`` training envs flies: the config's id (default ``RaceObs-<track>-v0``), or with
+    ``train_tracks`` the main id of each listed track in turn."""
+    if config.train_tracks:
+        return [f"RaceObs-{config.train_tracks[i % len(config.train_tracks)]}-v0" for i in range(config.n_envs)]
+    return [config.env_id or f"RaceObs-{config.track}-v0"] * config.n_envs
+
+
 def make_training_envs(config: DaggerConfig) -> list[gym.Env]:
-    """The ``n_envs`` training envs: the config's id (default ``RaceObs-<track>-v0``) with ray-cast depth and the
-    config's gate shifts (scene seeds are set per episode by the collector)."""
-    env_id = config.env_id or f"RaceObs-{config.track}-v0"
+    """The ``n_envs`` training envs (:func:`training_env_ids`) with ray-cast depth and the config's gate shifts
+    (scene seeds are set per episode by the collector)."""
     shifts = {"gate_shift": config.gate_shift, "gate_shift_z": config.gate_shift_z}
-    return [gym.make(env_id, obs_mode="vision", renderer="raycast", **shifts) for _ in range(config.n_envs)]
+    return [gym.make(env_id, obs_mode="vision", renderer="raycast", **shifts) for env_id in training_env_ids(config)]
 
 
 def make_teacher(config: DaggerConfig) -> PlannerAgent | FastPlannerAgent:
@@ -1056,7 +1086,12 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     saved = load_resume_state(out, config) if resume else None
     if resume and saved is None:
         raise ValueError(f"dagger: nothing to resume in {out} (no {RESUME_DIR}/state.json): run it without resume")
+    if config.train_tracks and config.track not in config.train_tracks:
+        raise ValueError(f"dagger: the run's track {config.track!r} is not one of train_tracks {config.train_tracks}")
     env_id = config.env_id or f"RaceObs-{config.track}-v0"
+    # the final evaluation: the run's id first, then the other training tracks' main ids
+    eval_ids = list(dict.fromkeys([env_id, *training_env_ids(config)]))
+    groups = [eid.split("-")[1] for eid in training_env_ids(config)] if config.train_tracks else None
     made = make_training_envs(config)
     envs = [m.unwrapped for m in made]
     teachers = [make_teacher(config) for _ in envs]
@@ -1102,7 +1137,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         tick = time.perf_counter()
         flown = collect(envs, teachers, policy, beta, config.steps_per_iteration, rng, seeds, dataset,
                         config.crash_weight, config.crash_window, config.replay_failed, failed,
-                        config.aux_task if path_head is not None else None)  # fmt: skip
+                        config.aux_task if path_head is not None else None, groups)  # fmt: skip
         torch.set_num_threads(config.update_threads)
         collected = time.perf_counter()
         learning_rate = iteration_learning_rate(config, k)
@@ -1152,9 +1187,14 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         from racebench.evaluation import Evaluator
 
         result = Evaluator(  # this run's own checkpoint, written by this process: trusted
-            str(checkpoint), [env_id], episodes=eval_episodes, out_dir=out / "eval", trust_code=True
+            str(checkpoint), eval_ids, episodes=eval_episodes, out_dir=out / "eval", trust_code=True
         ).run(progress=False)
-        summary["eval"] = {k: float(result[k].iloc[0]) for k in ("n", "successes", "success_rate", "lap_time_mean")}
+        columns = ("n", "successes", "success_rate", "lap_time_mean")
+        own = result[result["env_id"] == env_id].iloc[0]  # the summary's rows are sorted by id
+        summary["eval"] = {k: float(own[k]) for k in columns}
+        if len(eval_ids) > 1:  # a student of several tracks: each track's main id
+            per_id = result.set_index("env_id")
+            summary["eval_tracks"] = {eid: {k: float(per_id.loc[eid, k]) for k in columns} for eid in eval_ids}
     summary = _json_safe(summary)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
     return summary
