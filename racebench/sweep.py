@@ -197,6 +197,12 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
             config = dataclasses.replace(
                 config, init_from=f"{folder}/{after}-{{track}}-seed{{seed}}/{after}-{{track}}.zip"
             )
+        several = getattr(config, "train_tracks", None)  # a DAgger student of several tracks: one run per seed
+        if several and (len(data["tracks"]) != 1 or data["tracks"][0] not in several):
+            raise ValueError(
+                f"{source}: {config.name!r} trains one student for the tracks {several} (train_tracks): sweep it "
+                f"over one of them (tracks: [{several[0]}]), not {data['tracks']}"
+            )
         for track in data["tracks"]:
             for seed in data["seeds"]:
                 cpus = data.get("cpus_per_run")

@@ -84,6 +84,20 @@ def test_bad_sweep_files_are_named(tmp_path: Path) -> None:
     assert not (tmp_path / "out").exists()
 
 
+def test_a_student_of_several_tracks_is_swept_over_one_of_them(tmp_path: Path) -> None:
+    """A DAgger config with train_tracks trains one student for all its tracks: swept over two tracks (or one it does
+    not fly) it would train that student twice (or fail), so the sweep file is refused by name."""
+    (tmp_path / "multi.yaml").write_text("method: dagger\nname: multi\nn_envs: 4\ntrain_tracks: [S, J]\n")
+    sweep = {"name": "m", "out": str(tmp_path / "out"), "configs": ["multi.yaml"], "seeds": [0], "steps": 256}
+    path = tmp_path / "m.yaml"
+    for tracks in (["S", "J"], ["Circle"]):
+        path.write_text(json.dumps({**sweep, "tracks": tracks}))
+        with pytest.raises(ValueError, match=r"trains one student for the tracks \['S', 'J'\] \(train_tracks\)"):
+            load_sweep(path)
+    path.write_text(json.dumps({**sweep, "tracks": ["J"]}))
+    assert [(run.track, run.out.name) for run in load_sweep(path).runs] == [("J", "multi-J-seed0")]
+
+
 def test_a_local_sweep_finishes_is_skipped_when_rerun_and_resumes_a_killed_run(
     tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:
