@@ -434,6 +434,8 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(tmp_path: Path)
 
     with pytest.raises(ValueError, match="epochs=1, not 2"):  # another setting: not the same run
         distill(DaggerConfig(**{**config.__dict__, "epochs": 2}), tmp_path / "parts", eval_episodes=0, resume=True)
+    # the machine's threads are not the run's: a run started beside another may go on alone with more
+    assert load_resume_state(tmp_path / "parts", DaggerConfig(**{**config.__dict__, "update_threads": 1})) is not None
     # A state saved before a setting existed was run with that setting's default: it resumes under the default,
     # and only under it.
     state_path = tmp_path / "parts" / RESUME_DIR / "state.json"

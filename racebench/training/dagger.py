@@ -962,6 +962,9 @@ def fit(
 RESUME_DIR = "resume"  # in a run folder: the state after the last finished iteration
 # settings a resumption may change: they do not change the iterations already run
 AFTER_TRAINING: tuple[str, ...] = ("iterations", "select_episodes", "final_student")
+# Settings of the machine, not of the run: a run started beside another (one fit thread) may go on alone with two. The
+# resumed part's fits then differ from an unstopped run's in their last bits (a sum's order follows the thread count).
+RESOURCE_SETTINGS: tuple[str, ...] = ("update_threads",)
 KEPT_DIR = "iterations"  # in a run folder: the students kept for selection (DaggerConfig.keep_iterations)
 
 
@@ -1022,7 +1025,8 @@ def completed_iterations(out: Path) -> int:
 def load_resume_state(out: Path, config: DaggerConfig) -> dict[str, Any] | None:
     """The state :func:`save_resume_state` left in ``out`` (``None`` if there is none), checked against ``config``.
 
-    Every setting must match the saved run's except ``iterations``, which may grow (a finished run continues).
+    Every setting must match the saved run's except ``iterations``, which may grow (a finished run continues), those
+    that only choose the final checkpoint (:data:`AFTER_TRAINING`) and ``update_threads`` (:data:`RESOURCE_SETTINGS`).
     The returned dict's ``folder`` is where the state was found (:func:`resume_folder`).
     """
     folder = resume_folder(out)
@@ -1035,7 +1039,7 @@ def load_resume_state(out: Path, config: DaggerConfig) -> dict[str, Any] | None:
     # A setting added after the state was saved: that run had the setting's default.
     saved, asked = {**asdict(DaggerConfig()), **state["config"]}, asdict(config)
     for key in asked:
-        if key not in AFTER_TRAINING and saved[key] != asked[key]:
+        if key not in AFTER_TRAINING + RESOURCE_SETTINGS and saved[key] != asked[key]:
             raise ValueError(f"dagger: cannot resume {out}: it was run with {key}={saved[key]!r}, not {asked[key]!r}")
     if state["iteration"] + 1 > config.iterations:
         raise ValueError(
