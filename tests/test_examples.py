@@ -530,3 +530,31 @@ def test_seen_teacher_flies_both_teachers_and_counts_lines_bent_for_the_unseen(m
     with pytest.raises(SystemExit):
         module.main()
     assert "is not a DAgger config with teacher planner-fast" in capsys.readouterr().err
+
+
+def test_data_scaling_solves_the_logistic_fit_for_the_steps_to_a_target(tmp_path, monkeypatch) -> None:
+    spec = importlib.util.spec_from_file_location("data_scaling", ROOT / "baselines" / "data_scaling.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    from scipy.special import expit, logit
+
+    # 10 scenes: 3 finished at 1,000 steps, 8 at 4,000 (two doublings). Two points: the fit goes through both
+    # rates, so b = (logit 0.8 - logit 0.3) / 2 per doubling, and 50 % lies at logit 0.3 + b x = 0.
+    for steps, wins in ((1000, 3), (4000, 8)):
+        (tmp_path / str(steps)).mkdir()
+        rows = [{"env_id": "RaceObs-S-v0", "seed": s, "success": s < wins} for s in range(10)]
+        pd.DataFrame(rows).to_csv(tmp_path / str(steps) / "episodes.csv", index=False)
+    points = [f"{s}:{tmp_path / str(s)}" for s in (1000, 4000)]
+    row = module.project(module.load_points(points), 0.5, 200, 0).iloc[0]
+    slope = (logit(0.8) - logit(0.3)) / 2
+    assert row["sr_1000"] == 0.3 and row["sr_4000"] == 0.8
+    assert row["steps_to_target"] == pytest.approx(1000 * 2 ** (-logit(0.3) / slope), rel=1e-4)  # ~1,692
+    assert row["gain_per_doubling"] == pytest.approx(0.8 - expit(logit(0.8) - slope), abs=1e-4)
+    assert row["ci_low"] <= row["steps_to_target"] <= row["ci_high"]
+    assert module.steps_to_target(0.0, -0.1, 0.9) == float("inf")  # a falling fit never gets there
+    monkeypatch.setattr("sys.argv", ["data_scaling", "many:" + str(tmp_path / "1000"), points[1]])
+    with pytest.raises(SystemExit, match="'many:.*' is not STEPS:FOLDER"):
+        module.main()
+    monkeypatch.setattr("sys.argv", ["data_scaling", points[0]])
+    with pytest.raises(SystemExit, match="two or more step counts"):
+        module.main()
