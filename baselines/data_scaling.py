@@ -66,32 +66,36 @@ def steps_to_target(a: float, b: float, target: float) -> float:
     return float(2.0 ** ((logit(target) - a) / b))
 
 
-def project(data: pd.DataFrame, target: float, replicates: int, seed: int) -> pd.DataFrame:
-    """One row per ``env_id``: the observed rates, the fitted gain per doubling and the projected steps with a
-    scene-bootstrap 95 % interval."""
+def project(
+    data: pd.DataFrame, target: float, replicates: int, seed: int, predict: tuple[int, ...] = ()
+) -> pd.DataFrame:  # fmt: skip
+    """One row per ``env_id``: the observed rates, the fitted gain per doubling, the projected steps with a
+    scene-bootstrap 95 % interval, and for each step count in ``predict`` the fitted rate there (``fit_<steps>``,
+    ``fit_<steps>_low``, ``fit_<steps>_high``): a prediction a longer run can check."""
     rng = np.random.default_rng(seed)
     rows = []
     for env_id, frame in data.groupby("env_id"):
         table = frame.pivot_table(index="seed", columns="steps", values="success", aggfunc="first").dropna()
         counts = np.array(table.columns, dtype=float)
         x = np.tile(np.log2(counts), len(table))
-        y = table.to_numpy(dtype=float).reshape(-1)
-        a, b = fit_logistic(x, y)
-        draws = []
-        for _ in range(replicates):
-            pick = rng.integers(0, len(table), len(table))
-            ya = table.to_numpy(dtype=float)[pick].reshape(-1)
-            draws.append(steps_to_target(*fit_logistic(x, ya), target))
-        ordered = np.sort(draws)  # percentiles by rank: np.percentile interpolates, and inf - inf is nan
-        low, high = ordered[int(0.025 * replicates)], ordered[int(np.ceil(0.975 * replicates)) - 1]
-        observed = {f"sr_{int(c)}": float(table[c].mean()) for c in table.columns}
+        outcomes = table.to_numpy(dtype=float)
+        a, b = fit_logistic(x, outcomes.reshape(-1))
+        fits = [
+            fit_logistic(x, outcomes[rng.integers(0, len(table), len(table))].reshape(-1)) for _ in range(replicates)
+        ]
+        ends = int(0.025 * replicates), int(np.ceil(0.975 * replicates)) - 1  # percentiles by rank (inf - inf is nan)
+        draws = np.sort([steps_to_target(ai, bi, target) for ai, bi in fits])
+        row = {"env_id": env_id, "scenes": len(table), **{f"sr_{int(c)}": float(table[c].mean()) for c in counts}}
         top = counts.max()
-        rows.append({
-            "env_id": env_id, "scenes": len(table), **observed,
-            # fitted points gained by the last doubling observed, at the largest step count's fitted rate
-            "gain_per_doubling": float(expit(a + b * np.log2(top)) - expit(a + b * np.log2(top / 2))),
-            "steps_to_target": steps_to_target(a, b, target), "ci_low": float(low), "ci_high": float(high),
-        })  # fmt: skip
+        # fitted points gained by the last doubling observed, at the largest step count's fitted rate
+        row["gain_per_doubling"] = float(expit(a + b * np.log2(top)) - expit(a + b * np.log2(top / 2)))
+        row["steps_to_target"] = steps_to_target(a, b, target)
+        row["ci_low"], row["ci_high"] = float(draws[ends[0]]), float(draws[ends[1]])
+        for steps in predict:
+            rates = np.sort([expit(ai + bi * np.log2(steps)) for ai, bi in fits])
+            row[f"fit_{steps}"] = float(expit(a + b * np.log2(steps)))
+            row[f"fit_{steps}_low"], row[f"fit_{steps}_high"] = float(rates[ends[0]]), float(rates[ends[1]])
+        rows.append(row)
     return pd.DataFrame(rows)
 
 
@@ -109,12 +113,19 @@ def main() -> None:
     parser.add_argument("--target", type=float, default=0.95, help="success rate to reach (default 0.95)")
     parser.add_argument("--replicates", type=int, default=2000, help="bootstrap replicates (default 2000)")
     parser.add_argument("--seed", type=int, default=0, help="bootstrap random seed")
+    parser.add_argument("--predict", default="", help="step counts, comma-separated, to print the fitted rate at")
     args = parser.parse_args()
+    try:
+        predict = tuple(int(steps) for steps in args.predict.split(",") if steps)
+    except ValueError:
+        raise SystemExit(
+            f"data_scaling: --predict takes step counts separated by commas, got {args.predict!r}"
+        ) from None
     if args.replicates < 40:
         raise SystemExit(f"data_scaling: --replicates must be at least 40 for a 95 % interval, got {args.replicates}")
     if not 0.0 < args.target < 1.0:
         raise SystemExit(f"data_scaling: --target must lie strictly between 0 and 1, got {args.target}")
-    table = project(load_points(args.points), args.target, args.replicates, args.seed)
+    table = project(load_points(args.points), args.target, args.replicates, args.seed, predict)
     pd.set_option("display.width", 200)
     print(f"steps for a fitted success rate of {args.target:.2f} (95 % scene-bootstrap interval; inf: never)")
     print(table.to_string(index=False, float_format=format_number))

@@ -545,15 +545,20 @@ def test_data_scaling_solves_the_logistic_fit_for_the_steps_to_a_target(tmp_path
         rows = [{"env_id": "RaceObs-S-v0", "seed": s, "success": s < wins} for s in range(10)]
         pd.DataFrame(rows).to_csv(tmp_path / str(steps) / "episodes.csv", index=False)
     points = [f"{s}:{tmp_path / str(s)}" for s in (1000, 4000)]
-    row = module.project(module.load_points(points), 0.5, 200, 0).iloc[0]
+    row = module.project(module.load_points(points), 0.5, 200, 0, predict=(1000, 4000)).iloc[0]
     slope = (logit(0.8) - logit(0.3)) / 2
     assert row["sr_1000"] == 0.3 and row["sr_4000"] == 0.8
     assert row["steps_to_target"] == pytest.approx(1000 * 2 ** (-logit(0.3) / slope), rel=1e-4)  # ~1,692
     assert row["gain_per_doubling"] == pytest.approx(0.8 - expit(logit(0.8) - slope), abs=1e-4)
     assert row["ci_low"] <= row["steps_to_target"] <= row["ci_high"]
+    assert (row["fit_1000"], row["fit_4000"]) == pytest.approx((0.3, 0.8), abs=1e-4)  # through both points
+    assert row["fit_4000_low"] <= 0.8 <= row["fit_4000_high"]
     assert module.steps_to_target(0.0, -0.1, 0.9) == float("inf")  # a falling fit never gets there
     monkeypatch.setattr("sys.argv", ["data_scaling", "many:" + str(tmp_path / "1000"), points[1]])
     with pytest.raises(SystemExit, match="'many:.*' is not STEPS:FOLDER"):
+        module.main()
+    monkeypatch.setattr("sys.argv", ["data_scaling", "--predict", "2e6", *points])
+    with pytest.raises(SystemExit, match="--predict takes step counts"):
         module.main()
     monkeypatch.setattr("sys.argv", ["data_scaling", points[0]])
     with pytest.raises(SystemExit, match="two or more step counts"):
