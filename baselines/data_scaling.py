@@ -37,7 +37,10 @@ def load_points(points: list[str]) -> pd.DataFrame:
         path = Path(folder) / "episodes.csv"
         if not path.is_file():
             raise SystemExit(f"data_scaling: {path} does not exist (pass an evaluation's --out folder)")
-        frame = pd.read_csv(path, usecols=["env_id", "seed", "success"])
+        try:
+            frame = pd.read_csv(path, usecols=["env_id", "seed", "success"])
+        except ValueError as exc:  # a missing column, or a file that is not CSV
+            raise SystemExit(f"data_scaling: {path} is not an evaluation's episodes.csv ({exc})") from None
         frames.append(frame.assign(steps=int(steps)))
     data = pd.concat(frames, ignore_index=True)
     if data["steps"].nunique() < 2:
@@ -85,7 +88,7 @@ def project(
         ]
         ends = int(0.025 * replicates), int(np.ceil(0.975 * replicates)) - 1  # percentiles by rank (inf - inf is nan)
         draws = np.sort([steps_to_target(ai, bi, target) for ai, bi in fits])
-        row = {"env_id": env_id, "scenes": len(table), **{f"sr_{int(c)}": float(table[c].mean()) for c in counts}}
+        row = {"env_id": env_id, "scenes": len(table), **{f"sr_{c}": float(table[c].mean()) for c in table.columns}}
         top = counts.max()
         # fitted points gained by the last doubling observed, at the largest step count's fitted rate
         row["gain_per_doubling"] = float(expit(a + b * np.log2(top)) - expit(a + b * np.log2(top / 2)))
@@ -126,7 +129,6 @@ def main() -> None:
     if not 0.0 < args.target < 1.0:
         raise SystemExit(f"data_scaling: --target must lie strictly between 0 and 1, got {args.target}")
     table = project(load_points(args.points), args.target, args.replicates, args.seed, predict)
-    pd.set_option("display.width", 200)
     print(f"steps for a fitted success rate of {args.target:.2f} (95 % scene-bootstrap interval; inf: never)")
     print(table.to_string(index=False, float_format=format_number))
 
