@@ -537,11 +537,22 @@ def write_tables(out_dir: str | Path) -> pd.DataFrame:
     return episodes
 
 
+def _tracks_overlap(track_sets: list[set[str]]) -> bool:
+    """Whether any two of these policies' track sets share a track."""
+    seen: set[str] = set()
+    for flown in track_sets:
+        if seen & flown:
+            return True
+        seen |= flown
+    return False
+
+
 def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
     """Summaries of result directories, recomputed from their validated records.
 
     A path to a ``summary.csv`` or ``episodes.csv`` stands for the directory holding it: the CSV itself is
-    never read back, so an edited CSV cannot change a table.
+    never read back, so an edited CSV cannot change a table. Several policies under one label form one row when
+    their tracks are disjoint (one policy per track), else each is labelled with its directory's name.
     """
     loaded: list[tuple[Path, pd.DataFrame]] = []
     for path in paths:
@@ -556,14 +567,20 @@ def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
         loaded.append((path, episodes))
     if not loaded:
         raise ValueError("no result directories given")
-    # One label, several policies (e.g. three per-track students all labelled "vision-dagger"): their rows would
-    # be one agent's in a table. Each such policy gets the name of the first directory holding it (its parent's
-    # for ".../eval"), in every directory it appears in.
-    policies: dict[str, set[str]] = {}
+    # One label, several policies. When each policy was flown on tracks no other one was (a sweep's per-track runs
+    # of one config and seed, each evaluated on its own track), the label stays one row, as the paper's Table II
+    # has one row per method with a policy per track. When their tracks overlap (e.g. per-track students also
+    # flown on the other tracks), one row would mix two policies' results on a track: each such policy gets the
+    # name of the first directory holding it (its parent's for ".../eval"), in every directory it appears in.
+    tracks: dict[str, dict[str, set[str]]] = {}  # label -> policy -> the tracks it was flown on
     for _, episodes in loaded:
-        for agent, group in episodes.groupby("agent"):
-            policies.setdefault(str(agent), set()).update(group["policy_sha256"].astype(str))
-    shared = {agent for agent, hashes in policies.items() if len(hashes) > 1}
+        for (agent, policy), group in episodes.groupby(["agent", episodes["policy_sha256"].astype(str)]):
+            tracks.setdefault(str(agent), {}).setdefault(policy, set()).update(group["track"].astype(str))
+    shared = {agent for agent, by_policy in tracks.items() if _tracks_overlap(list(by_policy.values()))}
+    for agent in sorted(set(tracks) - shared):
+        if len(tracks[agent]) > 1:
+            per_track = ", ".join(f"{'/'.join(sorted(t))} {h[:12]}" for h, t in sorted(tracks[agent].items()))
+            logger.info("%s: one row of %d policies, one per track (%s)", agent, len(tracks[agent]), per_track)
     renamed: dict[tuple[str, str], str] = {}  # (label, policy) -> label (its first directory's name)
     for path, episodes in loaded:
         where = path.parent.name if path.name == "eval" else path.name

@@ -563,7 +563,7 @@ def test_the_gru_checkpoint_exports_to_onnx_and_flies_the_same(tmp_path: Path) -
 
 
 def test_one_label_on_several_policies_gets_each_directorys_name(tmp_path: Path, caplog) -> None:
-    """Three per-track students all labelled "vision-dagger" must not share one table row."""
+    """Per-track students all labelled "vision-dagger", each also flown on another's track, must not share a row."""
     env = "RaceObs-S-Level1-v0"
     for agent, out in (("hover", tmp_path / "a" / "eval"), ("random", tmp_path / "b")):
         Evaluator(agent, [env], episodes=1, out_dir=out, agent_name="same").run(progress=False)
@@ -574,3 +574,22 @@ def test_one_label_on_several_policies_gets_each_directorys_name(tmp_path: Path,
     summary = read_summaries([tmp_path / "a" / "eval", tmp_path / "b", tmp_path / "c", tmp_path / "d"])
     assert sorted(summary["agent"]) == ["other", "same (a)", "same (a)", "same (b)"]
     assert "name several policies" in caplog.text
+
+
+def test_one_label_with_one_policy_per_track_is_one_table_row(tmp_path: Path, caplog) -> None:
+    """A sweep's per-track runs of one config and seed (one label, each policy flown on its own track only) are one
+    row of Table II, as the paper's method rows are; a third policy on a track already covered splits them again."""
+    Evaluator("hover", ["RaceObs-S-v0"], episodes=1, out_dir=tmp_path / "cfg-S-seed0" / "eval",
+              agent_name="cfg-seed0").run(progress=False)  # fmt: skip
+    Evaluator("random", ["RaceObs-J-v0"], episodes=1, out_dir=tmp_path / "cfg-J-seed0" / "eval",
+              agent_name="cfg-seed0").run(progress=False)  # fmt: skip
+    with caplog.at_level("INFO", logger="racebench"):
+        summary = read_summaries([tmp_path / "cfg-S-seed0" / "eval", tmp_path / "cfg-J-seed0" / "eval"])
+    assert sorted(zip(summary["agent"], summary["track"], strict=True)) == [("cfg-seed0", "J"), ("cfg-seed0", "S")]
+    assert "one row of 2 policies, one per track" in caplog.text
+    table = make_table(summary, "III")
+    assert table.count("cfg-seed0") == 1  # one row, cells on S and J
+    Evaluator("follow", ["RaceObs-J-v0"], episodes=1, out_dir=tmp_path / "other" / "eval",
+              agent_name="cfg-seed0").run(progress=False)  # fmt: skip
+    summary = read_summaries([tmp_path / p / "eval" for p in ("cfg-S-seed0", "cfg-J-seed0", "other")])
+    assert sorted(summary["agent"]) == ["cfg-seed0 (cfg-J-seed0)", "cfg-seed0 (cfg-S-seed0)", "cfg-seed0 (other)"]

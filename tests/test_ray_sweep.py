@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 
 from racebench.cli import main
-from racebench.evaluation import load_records
+from racebench.evaluation import load_records, read_summaries
 from racebench.ray_backend import RayOptions
 from racebench.sweep import latest_checkpoint, load_sweep, run_sweep
 
@@ -63,6 +63,9 @@ def check_finished(out: Path, runs: list[str]) -> dict[str, float]:
         stamps[run] = (out / run / "summary.json").stat().st_mtime_ns
     table = pd.read_csv(out / "sweep.csv")
     assert table["run"].tolist() == runs
+    # `racebench table <out>/*/eval`: one row per config and seed, each track's cells from that track's run
+    summary = read_summaries([out / run / "eval" for run in runs])
+    assert summary["agent"].tolist() == ["tiny-seed0"] * len(runs) and summary["track"].nunique() == len(runs)
     return stamps
 
 
