@@ -14,6 +14,7 @@ A sweep file (YAML, loaded with ``yaml.safe_load``; ``baselines/sweeps/paper-tab
     steps: 200000                   # environment steps per run
     overrides: {num_processes: 1}   # applied to every config (before a config's own)
     eval_episodes: 10               # final evaluation of each run on RaceObs-<track>-v0 (0: none)
+    eval_suite: main                # ... on which ids of its track: main, density, gates or paper (all 9 of them)
     checkpoint_every: 50000         # steps between checkpoints, the points a killed run resumes from
     device: auto                    # where the networks train (racebench train --device)
     cpus_per_run: null              # Ray: CPUs a run reserves (default: its config's num_processes)
@@ -24,7 +25,9 @@ resumable through that folder alone: ``summary.json`` with its ``eval`` (or ``ev
 finished, and the run is skipped; otherwise training continues from the newest checkpoint under
 ``checkpoints/`` (or starts afresh), then the final checkpoint is evaluated into ``eval/`` with the
 resumable :class:`~racebench.evaluation.Evaluator` (labelled ``<config name>-seed<seed>``, so
-``racebench table <out>/*/eval`` puts one row per config and seed). There is no second checkpoint mechanism:
+``racebench table <out>/*/eval`` puts one row per config and seed, each track's cells from that track's run), on the
+ids of ``eval_suite`` (an evaluation suite of ``racebench evaluate``) that belong to the run's track: ``paper`` gives
+Tables II–IV from the runs alone. There is no second checkpoint mechanism:
 a run killed anywhere, or retried by Ray after its worker or node died, picks up from these files.
 
 ``after: NAME`` chains two configs (a teacher–student campaign: the DAgger student, then its PPO fine-tuning):
@@ -57,8 +60,8 @@ from racebench.ray_backend import RayOptions
 from racebench.records import atomic_write
 
 SWEEP_KEYS: tuple[str, ...] = (
-    "name", "out", "configs", "tracks", "seeds", "steps", "overrides", "eval_episodes", "checkpoint_every",
-    "device", "cpus_per_run", "gpus_per_run",
+    "name", "out", "configs", "tracks", "seeds", "steps", "overrides", "eval_episodes", "eval_suite",
+    "checkpoint_every", "device", "cpus_per_run", "gpus_per_run",
 )  # fmt: skip
 logger = logging.getLogger("racebench")
 _CHECKPOINT = re.compile(r"^(?P<prefix>.+)_(?P<steps>\d+)_steps\.zip$")
@@ -74,6 +77,7 @@ class SweepRun:
     steps: int
     out: Path
     eval_episodes: int
+    eval_envs: tuple[str, ...]  # the ids its final policy is evaluated on (the main id first)
     checkpoint_every: int
     device: str
     cpus: float
@@ -141,7 +145,7 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
 
     Raises ``ValueError`` (or ``OSError``) naming the first problem, before any run starts.
     """
-    from racebench.evaluation import EVAL_SEED_BASE
+    from racebench.evaluation import EVAL_SEED_BASE, SUITES
     from racebench.track import BUILTIN_TRACKS
     from racebench.training.train import DEVICES
 
@@ -168,6 +172,9 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
     for key, low in numbers.items():
         if key in data and not (type(data[key]) is int and data[key] >= low):  # a YAML true is no number
             raise ValueError(f"{source}: {key} must be an integer >= {low}")
+    suite = data.get("eval_suite", "main")
+    if suite not in SUITES:
+        raise ValueError(f"{source}: eval_suite must be one of {sorted(SUITES)}, not {suite!r}")
     device = data.get("device", "auto")
     if device not in DEVICES:
         raise ValueError(f"{source}: device must be one of {DEVICES}")
@@ -214,6 +221,7 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
                         steps=entry.get("steps", data["steps"]),
                         out=root / f"{config.name}-{track}-seed{seed}",
                         eval_episodes=data.get("eval_episodes", 10),
+                        eval_envs=track_envs(suite, track),
                         checkpoint_every=data.get("checkpoint_every", 50_000),
                         device=device,
                         cpus=float(config.num_processes if cpus is None else cpus),
@@ -240,12 +248,24 @@ def latest_checkpoint(run_dir: Path, prefix: str) -> tuple[Path | None, int]:
     return best
 
 
+def track_envs(suite: str, track: str) -> tuple[str, ...]:
+    """The ids of evaluation suite ``suite`` on ``track``, the track's main id first (it is always flown)."""
+    from racebench.evaluation import SUITES, split_env_id
+
+    main = f"RaceObs-{track}-v0"
+    return (main, *(env_id for env_id in SUITES[suite] if split_env_id(env_id)[0] == track and env_id != main))
+
+
 def is_finished(run: SweepRun) -> bool:
     """Whether the run's ``summary.json`` says it trained and (if asked) evaluated."""
     path = run.out / "summary.json"
     if not path.exists():
         return False
-    return run.eval_episodes == 0 or "eval" in json.loads(path.read_text())
+    if run.eval_episodes == 0:
+        return True
+    evaluation = json.loads(path.read_text()).get("eval")
+    # a run evaluated before the sweep asked for more ids (older summaries: the main id alone) is not finished
+    return evaluation is not None and set(run.eval_envs) <= set(evaluation.get("envs", run.eval_envs[:1]))
 
 
 def run_job(run: SweepRun) -> dict[str, Any]:
@@ -279,11 +299,13 @@ def run_job(run: SweepRun) -> dict[str, Any]:
     if run.eval_episodes > 0:
         # Evaluated apart from train() so a run killed while evaluating resumes its evaluation, not its training.
         evaluator = Evaluator(  # this run's own checkpoint, written by racebench: trusted
-            summary["checkpoint"], [f"RaceObs-{run.track}-v0"], episodes=run.eval_episodes, out_dir=run.out / "eval",
+            summary["checkpoint"], list(run.eval_envs), episodes=run.eval_episodes, out_dir=run.out / "eval",
             agent_name=f"{run.config.name}-seed{run.seed}", trust_code=True,
         )  # fmt: skip
-        result = evaluator.run(progress=False).iloc[0]
-        summary["eval"] = {k: _plain(result[k]) for k in ("n", "successes", "success_rate", "lap_time_mean")}
+        results = evaluator.run(progress=False).set_index("env_id")
+        main = results.loc[f"RaceObs-{run.track}-v0"]  # the sweep's table: the run's own track, as the paper's
+        summary["eval"] = {k: _plain(main[k]) for k in ("n", "successes", "success_rate", "lap_time_mean")}
+        summary["eval"]["envs"] = list(run.eval_envs)
         atomic_write(summary_path, json.dumps(summary, indent=2))
     return {**row, **_outcome(summary), "status": "done"}
 

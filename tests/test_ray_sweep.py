@@ -17,7 +17,8 @@ import pytest
 from racebench.cli import main
 from racebench.evaluation import load_records, read_summaries
 from racebench.ray_backend import RayOptions
-from racebench.sweep import latest_checkpoint, load_sweep, run_sweep
+from racebench.sweep import latest_checkpoint, load_sweep, run_sweep, track_envs
+from racebench.tables import make_table
 
 # State observations, 2 envs in this process, 128-step updates: a run of 256 steps takes seconds.
 TINY = textwrap.dedent(
@@ -80,6 +81,7 @@ def test_bad_sweep_files_are_named(tmp_path: Path) -> None:
         ({"stepz": 3}, "unknown key 'stepz'"),
         ({"configs": ["tiny.yaml", "tiny.yaml"]}, "two runs would share the folder 'tiny-S-seed0'"),
         ({"overrides": {"batch_size": 100}}, "multiple of batch_size"),
+        ({"eval_suite": "hard"}, r"eval_suite must be one of \['density', 'gates', 'main', 'paper'\], not 'hard'"),
     ]:
         with pytest.raises(SystemExit, match=message) as exit_info:
             main(["sweep", str(write_sweep(tmp_path, **changes))])
@@ -136,6 +138,28 @@ def test_a_local_sweep_finishes_is_skipped_when_rerun_and_resumes_a_killed_run(
     assert (trained / "tiny-S.zip").stat().st_mtime_ns == model_stamp, "a trained run must not train again"
     assert json.loads((run / "summary.json").read_text())["resumed_at"] == 128
     check_finished(out, RUNS)
+
+
+def test_eval_suite_flies_each_run_on_its_tracks_ids_and_extends_a_finished_run(tmp_path: Path) -> None:
+    """``eval_suite: density``: every run's policy on its own track's ids of that suite, main id first; a run
+    evaluated on the main id alone is evaluated on the rest without training again; Table IV from the runs."""
+    path = write_sweep(tmp_path)
+    out = tmp_path / "out"
+    assert main(["sweep", str(path)]) == 0
+    model = out / "tiny-S-seed0" / "tiny-S.zip"
+    stamp = model.stat().st_mtime_ns
+    path = write_sweep(tmp_path, eval_suite="density")
+    assert [row["status"] for row in run_sweep(load_sweep(path))] == ["done", "done"]
+    assert model.stat().st_mtime_ns == stamp, "a trained run must not train again"
+    for run, track in zip(RUNS, ["S", "J"], strict=True):
+        wanted = track_envs("density", track)
+        assert wanted[0] == f"RaceObs-{track}-v0" and len(wanted) == 5
+        assert sorted(load_records(out / run / "eval")["env_id"]) == sorted(wanted)
+        evaluation = json.loads((out / run / "summary.json").read_text())["eval"]
+        assert evaluation["envs"] == list(wanted) and evaluation["n"] == 1
+    assert [row["status"] for row in run_sweep(load_sweep(path))] == ["skipped", "skipped"]
+    table = make_table(read_summaries([out / run / "eval" for run in RUNS]), "IV")
+    assert "tiny-seed0 S-shaped" in table and "tiny-seed0 J-shaped" in table and "tiny-seed0 3D Circle" in table
 
 
 def test_a_sweep_runs_a_dagger_config_and_resumes_it_from_its_folder(tmp_path: Path) -> None:
@@ -343,6 +367,8 @@ def test_the_shipped_paper_sweep_loads() -> None:
     assert len(sweep.runs) == 18 and {run.config.name for run in sweep.runs} == configs
     assert {run.track for run in sweep.runs} == {"S", "Circle", "J"}
     assert all(run.steps == 100_000_000 and run.cpus == run.config.num_processes for run in sweep.runs)
+    # Tables II-IV from the runs alone: each on its track's 9 ids of the paper suite
+    assert all(run.eval_envs == track_envs("paper", run.track) and len(run.eval_envs) == 9 for run in sweep.runs)
 
 
 def test_the_shipped_teacher_student_sweep_chains_each_student_to_its_fine_tuning() -> None:
@@ -352,6 +378,7 @@ def test_the_shipped_teacher_student_sweep_chains_each_student_to_its_fine_tunin
     tuned = [run for run in sweep.runs if run.config.name == "vision-distill-ppo"]
     assert len(students) == len(tuned) == 9 and sweep.runs[:9] == students  # students first: local order
     assert {run.steps for run in students} == {500_000} and {run.steps for run in tuned} == {2_000_000}
+    assert all(f"RaceObs-{run.track}-Density5-v0" in run.eval_envs for run in sweep.runs)  # the hard ids too
     for run in tuned:
         assert run.after == f"vision-distill-{run.track}-seed{run.seed}"
         start = run.config.init_from.format(track=run.track, seed=run.seed)
