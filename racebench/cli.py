@@ -136,6 +136,11 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     p_table.add_argument("--format", default="md", choices=["md", "latex"], help="Markdown or LaTeX (default md)")
     p_table.add_argument("--no-ci", action="store_true", help="success rates without Wilson intervals")
+    p_table.add_argument(
+        "--seeds", default="separate", choices=["separate", "mean"],
+        help="rows <config>-seed<k> (a sweep's training seeds): a row each, or one row per config with the seeds' "
+        "mean success rate and its range over the seeds (default separate)",
+    )  # fmt: skip
     p_table.add_argument("--out", default=None, help="write to this file instead of stdout")
 
     p_plot = sub.add_parser("plot", help="figures from result directories: SR by track, vs density, vs gate shift")
@@ -365,7 +370,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     elif args.command == "table":
         from racebench.tables import make_table
 
-        text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci)
+        try:
+            text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci,
+                              seeds=args.seeds)  # fmt: skip
+        except ValueError as exc:
+            raise SystemExit(f"racebench table: {exc}") from exc
         if args.out:
             Path(args.out).write_text(text)
             log.info(f"wrote {args.out}")

@@ -8,11 +8,16 @@ SR cells show the percentage and, by default, the 95 % Wilson interval. A cell i
 interval (Wilson for SR, Student's t for the mean lap time) lies entirely beyond every other non-privileged
 agent's in that comparison: the best point estimate alone is not a result. Privileged agents (e.g. the
 planner) are marked and never bolded: they are a reference, not a competitor.
+
+:func:`over_seeds` pools a sweep's training seeds (rows ``<config>-seed<k>``) into one row per config: the mean of
+the seeds' success rates with their range, since another training seed usually moves a rate more than the episodes'
+sampling does; a config is then bold only where its worst seed beats every other row's interval.
 """
 
 from __future__ import annotations
 
 import math
+import re
 
 import pandas as pd
 from scipy.stats import t as student_t
@@ -22,6 +27,8 @@ from racebench.registration import DENSITIES, GATE_SHIFTS
 
 TRACK_NAMES: dict[str, str] = {"S": "S-shaped", "Circle": "3D Circle", "J": "J-shaped"}
 TABLES: tuple[str, ...] = ("II", "III", "IV")
+SEED_MODES: tuple[str, ...] = ("separate", "mean")  # a sweep's training seeds: a row each, or one row per config
+SEED_LABEL = re.compile(r"^(?P<config>.+)-seed(?P<seed>\d+)$")  # a sweep's runs: <config>-seed<k>
 
 
 def _agent_label(agent: str, privileged: bool) -> str:
@@ -130,6 +137,49 @@ def table_iv(summary: pd.DataFrame, ci: bool = True) -> tuple[pd.DataFrame, set]
     return pd.DataFrame(columns, index=[label for label, _ in variants]), bold
 
 
+def over_seeds(summary: pd.DataFrame) -> pd.DataFrame:
+    """Rows of one config's training seeds (labels ``<config>-seed<k>``, as a sweep writes them) pooled per env id.
+
+    A config with two or more seeds becomes the row ``<config> (<k> seeds)``: ``success_rate`` the mean of the
+    seeds' rates, ``sr_ci_low`` / ``sr_ci_high`` their lowest and highest, ``n`` and ``successes`` the totals,
+    ``lap_time_mean`` the mean of the seeds' mean laps (over the seeds with a lap) without a spread (so no lap-time
+    cell of a column it is in is bold), ``seeds`` the count (1 on every other row, each kept as it is). A config
+    whose seeds were not all flown on the same ids is an error: its mean would average different seeds on different
+    ids.
+    """
+    matches = [SEED_LABEL.match(str(agent)) for agent in summary["agent"]]
+    configs = pd.Series([m["config"] if m else None for m in matches], index=summary.index)
+    seeds = pd.Series([int(m["seed"]) if m else -1 for m in matches], index=summary.index)
+    pooled, kept = [], []
+    for config, group in summary[configs.notna()].groupby(configs[configs.notna()], sort=False):
+        all_seeds = sorted(set(seeds[group.index]))
+        if len(all_seeds) < 2:
+            kept.append(group)
+            continue
+        for env_id, cell in group.groupby("env_id", sort=False):
+            flown = sorted(seeds[cell.index])
+            if flown != all_seeds:
+                raise ValueError(f"{config}: {env_id} has results of seeds {flown}, its other ids of {all_seeds}; "
+                                 "pool seeds flown on the same ids")  # fmt: skip
+            laps = cell.loc[cell["successes"] > 0, "lap_time_mean"]
+            pooled.append({
+                **cell.iloc[0].to_dict(),
+                "agent": f"{config} ({len(all_seeds)} seeds)",
+                "privileged": bool(cell["privileged"].any()),
+                "n": int(cell["n"].sum()),
+                "successes": int(cell["successes"].sum()),
+                "success_rate": float(cell["success_rate"].mean()),
+                "sr_ci_low": float(cell["success_rate"].min()),
+                "sr_ci_high": float(cell["success_rate"].max()),
+                "lap_time_mean": float(laps.mean()) if len(laps) else float("nan"),
+                "lap_time_median": float("nan"),
+                "lap_time_std": float("nan"),
+                "seeds": len(all_seeds),
+            })  # fmt: skip
+    frames = [summary[configs.isna()], *kept, pd.DataFrame(pooled)]
+    return pd.concat([f for f in frames if not f.empty], ignore_index=True).fillna({"seeds": 1})
+
+
 def _latex_escape(text: str) -> str:
     for char, repl in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#")):
         text = text.replace(char, repl)
@@ -154,8 +204,17 @@ def render(frame: pd.DataFrame, bold: set, fmt: str, caption: str) -> str:
     return f"\\begin{{table}}[t]\n\\centering\n\\caption{{{_latex_escape(caption)}}}\n{body}\\end{{table}}\n"
 
 
-def make_table(summary: pd.DataFrame, which: str, fmt: str = "md", ci: bool = True) -> str:
-    """Table ``II``, ``III`` or ``IV`` of the paper from a summary DataFrame."""
+def make_table(summary: pd.DataFrame, which: str, fmt: str = "md", ci: bool = True, seeds: str = "separate") -> str:
+    """Table ``II``, ``III`` or ``IV`` of the paper from a summary DataFrame.
+
+    ``seeds="mean"`` pools each config's training seeds into one row first (:func:`over_seeds`).
+    """
+    if seeds not in SEED_MODES:
+        raise ValueError(f"seeds must be one of {SEED_MODES}, got {seeds!r}")
+    pooled = False
+    if seeds == "mean":
+        summary = over_seeds(summary)
+        pooled = bool((summary["seeds"] > 1).any())
     which = which.upper()
     if which == "II":
         frame, bold = table_ii(summary, ci=ci, lap_time=True)
@@ -172,5 +231,8 @@ def make_table(summary: pd.DataFrame, which: str, fmt: str = "md", ci: bool = Tr
         raise ValueError(f"no results for Table {which} in the given summaries")
     if ci:
         caption += " SR in % with 95% Wilson interval in brackets."
+    if pooled:
+        caption += (" Rows '(k seeds)': the mean over k training seeds, SR range over the seeds in brackets, lap time"
+                    " the mean of the seeds' mean laps.")  # fmt: skip
     caption += " Bold: a non-privileged agent whose 95% interval lies entirely beyond every other's."
     return render(frame, bold, fmt, caption)

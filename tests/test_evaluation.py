@@ -355,6 +355,39 @@ def test_table_ii_from_a_fixed_csv() -> None:
     assert make_table(pd.read_csv(FIXED_SUMMARY), "II", "md", ci=False) == expected
 
 
+def test_seeds_pooled_into_one_row_per_config_with_their_mean_and_range() -> None:
+    """``--seeds mean``: a sweep's rows <config>-seed<k> become one row of the seeds' mean success rate, the range over
+    the seeds in brackets, and bold only where the worst seed beats every other row's interval."""
+    from racebench.statistics import wilson_interval
+    from racebench.tables import over_seeds
+
+    def row(agent: str, k: int, lap: float, env: str = "RaceObs-S-v0") -> dict:
+        low, high = wilson_interval(k, 10)
+        track = env.split("-")[1]
+        return {"agent": agent, "privileged": False, "env_id": env, "track": track, "variant": "default", "n": 10,
+                "successes": k, "success_rate": k / 10, "sr_ci_low": low, "sr_ci_high": high,
+                "lap_time_median": lap, "lap_time_mean": lap, "lap_time_std": 0.1}  # fmt: skip
+
+    j = "RaceObs-J-v0"
+    seeds = [row("c-seed0", 9, 3.0), row("c-seed1", 10, 3.2), row("c-seed2", 10, 3.4),
+             row("c-seed0", 6, 4.0, j), row("c-seed1", 8, 4.0, j), row("c-seed2", 7, 5.0, j)]  # fmt: skip
+    summary = pd.DataFrame([*seeds, row("b", 2, 5.0), row("lone-seed0", 5, 4.0)])
+    pooled = over_seeds(summary).set_index(["agent", "env_id"])
+    s_cell, j_cell = pooled.loc[("c (3 seeds)", "RaceObs-S-v0")], pooled.loc[("c (3 seeds)", "RaceObs-J-v0")]
+    assert (s_cell["n"], s_cell["successes"], s_cell["seeds"]) == (30, 29, 3)
+    assert s_cell["success_rate"] == pytest.approx(29 / 30)
+    assert (s_cell["sr_ci_low"], s_cell["sr_ci_high"]) == (0.9, 1.0)
+    assert s_cell["lap_time_mean"] == pytest.approx(3.2) and j_cell["success_rate"] == pytest.approx(0.7)
+    assert pooled.loc[("lone-seed0", "RaceObs-S-v0"), "seeds"] == 1  # one seed: its row, its Wilson interval
+    table = make_table(summary, "II", seeds="mean")
+    assert "| c (3 seeds) " in table and "c-seed" not in table and "lone-seed0" in table
+    assert "**97 [90–100]**" in table  # the worst seed (9/10) beats b (2/10, Wilson [6–51]) and lone (5/10, [24–76])
+    assert "70 [60–80]" in table and "'(k seeds)': the mean over k training seeds" in table
+    assert "c-seed1" in make_table(summary, "II")  # the default keeps a row per seed
+    with pytest.raises(ValueError, match=r"c: RaceObs-J-v0 has results of seeds \[0, 1\], its other ids of \[0, 1"):
+        over_seeds(summary.drop(index=5))
+
+
 def test_table_latex_is_booktabs_with_bold_and_ci() -> None:
     text = make_table(pd.read_csv(FIXED_SUMMARY), "III", "latex", ci=True)
     assert "\\toprule" in text and "\\midrule" in text and "\\bottomrule" in text
