@@ -275,16 +275,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     _configure_logging(args.quiet, args.verbose)
     log.debug(f"racebench {racebench.__version__} from {Path(racebench.__file__).parent}, env version "
               f"{racebench.ENV_VERSION}, arguments {vars(args)}")  # fmt: skip
+    try:
+        return _dispatch(args)
+    except BrokenPipeError:  # `racebench table ... | head`: the reader left, which is fine
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    """Run the command ``args`` names."""
     if args.command == "leaderboard":
         from racebench.leaderboard.command import run as run_leaderboard
 
         return run_leaderboard(args)
     if args.command == "envs":
-        try:
-            print("\n".join(racebench.ENV_IDS))
-            sys.stdout.flush()
-        except BrokenPipeError:  # `racebench envs | head`: the reader left, which is fine
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        print("\n".join(racebench.ENV_IDS))
+        sys.stdout.flush()
     elif args.command == "fly":
         from racebench.agents import AgentLoadError, parse_agent_kwargs
 

@@ -580,7 +580,7 @@ def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
     for agent in sorted(set(tracks) - shared):
         if len(tracks[agent]) > 1:
             per_track = ", ".join(f"{'/'.join(sorted(t))} {h[:12]}" for h, t in sorted(tracks[agent].items()))
-            logger.info("%s: one row of %d policies, one per track (%s)", agent, len(tracks[agent]), per_track)
+            logger.debug("%s: one row of %d policies, one per track (%s)", agent, len(tracks[agent]), per_track)
     renamed: dict[tuple[str, str], str] = {}  # (label, policy) -> label (its first directory's name)
     for path, episodes in loaded:
         where = path.parent.name if path.name == "eval" else path.name

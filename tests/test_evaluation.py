@@ -616,7 +616,7 @@ def test_one_label_with_one_policy_per_track_is_one_table_row(tmp_path: Path, ca
               agent_name="cfg-seed0").run(progress=False)  # fmt: skip
     Evaluator("random", ["RaceObs-J-v0"], episodes=1, out_dir=tmp_path / "cfg-J-seed0" / "eval",
               agent_name="cfg-seed0").run(progress=False)  # fmt: skip
-    with caplog.at_level("INFO", logger="racebench"):
+    with caplog.at_level("DEBUG", logger="racebench"):
         summary = read_summaries([tmp_path / "cfg-S-seed0" / "eval", tmp_path / "cfg-J-seed0" / "eval"])
     assert sorted(zip(summary["agent"], summary["track"], strict=True)) == [("cfg-seed0", "J"), ("cfg-seed0", "S")]
     assert "one row of 2 policies, one per track" in caplog.text
