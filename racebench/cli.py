@@ -128,6 +128,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="episodes per Ray task (default: the lockstep width, at most 16, if the agent batches; else 1)",
     )
 
+    p_compare = sub.add_parser(
+        "compare", help="two evaluations paired on the same scenes: exact McNemar test per env id and pooled"
+    )
+    p_compare.add_argument("a", help="first evaluation directory (racebench evaluate --out), one policy's")
+    p_compare.add_argument("b", help="second evaluation directory, one policy's")
+    p_compare.add_argument("--out", default=None, help="also write the per-env-id comparison as CSV")
+
     p_table = sub.add_parser("table", help="the paper's Table II, III or IV from result directories / summary CSVs")
     p_table.add_argument("results", nargs="+", help="result directories or summary.csv files")
     p_table.add_argument(
@@ -386,6 +393,8 @@ def _dispatch(args: argparse.Namespace) -> int:
             log.info(f"wrote {args.out}")
         else:
             print(text)
+    elif args.command == "compare":
+        return _compare(args)
     elif args.command == "plot":
         from racebench import plots
 
@@ -549,6 +558,26 @@ def _summaries(results: Sequence[str], command: str):
         return read_summaries(results)
     except (OSError, ValueError) as exc:
         raise SystemExit(f"racebench {command}: {exc}") from exc
+
+
+def _compare(args: argparse.Namespace) -> int:
+    """``racebench compare``: each side's outcome, then the paired test per shared env id and pooled."""
+    from racebench.evaluation import paired_comparison
+
+    try:
+        sides, pairs = paired_comparison(args.a, args.b)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"racebench compare: {exc}") from exc
+    for key, side in zip("ab", sides.itertuples(index=False), strict=True):
+        print(f"{key}: {side.evaluation}: {side.agent} (policy {side.policy_sha256}) {side.successes}/{side.n} "
+              f"({100 * side.success_rate:.0f} % [{100 * side.sr_ci_low:.0f}–{100 * side.sr_ci_high:.0f}]), "
+              f"mean lap {side.lap_time_mean:.2f} s; failures {side.failures}")  # fmt: skip
+    print("laps only a / only b finished of the pairs (same env id and seed); p: McNemar's exact test (two-sided)")
+    print(pairs.to_string(index=False, formatters={"p": "{:.3f}".format}))
+    if args.out:
+        pairs.to_csv(args.out, index=False)
+        log.info(f"wrote {args.out}")
+    return 0
 
 
 def _export_policy(args: argparse.Namespace) -> int:

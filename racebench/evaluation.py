@@ -60,7 +60,7 @@ from racebench.records import (
 )
 from racebench.registration import DENSITIES, ENV_VERSION, GATE_SHIFTS
 from racebench.rollout import BatchAgent, env_error_result, run_episode, run_lockstep
-from racebench.statistics import wilson_interval
+from racebench.statistics import paired_outcomes, wilson_interval
 
 logger = logging.getLogger("racebench")
 
@@ -599,3 +599,47 @@ def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
         logger.warning("the label(s) %s name several policies: each row is labelled with its directory",
                        ", ".join(sorted(shared)))  # fmt: skip
     return pd.concat(frames, ignore_index=True)
+
+
+def paired_comparison(a_dir: str | Path, b_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Two evaluations compared scene by scene, from their validated records (never their CSVs).
+
+    Each directory must hold one policy's episodes. Episodes are paired by ``(env_id, seed)``: the seed protocol
+    gives both policies the same scenes, so a paired test (McNemar's exact test on the laps only one of them
+    finished) tells apart rates whose unpaired Wilson intervals overlap. Returns ``(sides, pairs)``: per
+    directory its label, policy, episodes, successes, Wilson interval, mean lap and failure causes; per shared
+    env id, then ``all`` of them pooled, the pairs, each side's successes, ``only_a``, ``only_b`` and ``p``.
+    """
+    episodes, sides = [], []
+    for path in (Path(a_dir), Path(b_dir)):
+        if not (path / "records").is_dir():
+            raise FileNotFoundError(f"no evaluation records at {str(path)!r} (expected {str(path / 'records')!r})")
+        frame = load_records(path)
+        if frame.empty:
+            raise ValueError(f"no valid evaluation records in {str(path)!r}")
+        policies = sorted(frame["policy_sha256"].astype(str).unique())
+        if len(policies) > 1:
+            labels = ", ".join(sorted(set(frame["agent"].astype(str))))
+            raise ValueError(f"{str(path)!r} holds {len(policies)} policies' episodes ({labels}): compare one "
+                             "policy's evaluation with another's")  # fmt: skip
+        frame = frame.assign(success=frame["success"].astype(bool))
+        wins, n = int(frame["success"].sum()), len(frame)
+        low, high = wilson_interval(wins, n)
+        causes = frame.loc[~frame["success"], "crash_reason"].fillna("time limit").astype(str).str.split(":").str[0]
+        sides.append({"evaluation": str(path), "agent": str(frame["agent"].iloc[0]), "policy_sha256": policies[0][:12],
+                      "n": n, "successes": wins, "success_rate": wins / n, "sr_ci_low": low, "sr_ci_high": high,
+                      "lap_time_mean": pd.to_numeric(frame.loc[frame["success"], "lap_time"]).mean(),
+                      "failures": {str(k): int(v) for k, v in causes.value_counts().items()}})  # fmt: skip
+        episodes.append(frame[["env_id", "seed", "success"]])
+    a, b = episodes
+    shared = [env for env in a["env_id"].unique() if env in set(b["env_id"])]
+    rows = []
+    for env_id, part_a, part_b in [*((e, a[a["env_id"] == e], b[b["env_id"] == e]) for e in shared), ("all", a, b)]:
+        pairs = part_a.merge(part_b, on=["env_id", "seed"], suffixes=("_a", "_b"))
+        n, only_a, only_b, p = paired_outcomes(part_a, part_b)
+        rows.append({"env_id": env_id, "pairs": n, "successes_a": int(pairs["success_a"].sum()),
+                     "successes_b": int(pairs["success_b"].sum()), "only_a": only_a, "only_b": only_b,
+                     "p": p})  # fmt: skip
+    if rows[-1]["pairs"] == 0:
+        raise ValueError(f"{str(a_dir)!r} and {str(b_dir)!r} share no (env_id, seed) episode to pair")
+    return pd.DataFrame(sides), pd.DataFrame(rows)

@@ -26,6 +26,7 @@ from racebench.evaluation import (
     Evaluator,
     eval_seeds,
     load_records,
+    paired_comparison,
     read_summaries,
     resolve_envs,
     split_env_id,
@@ -626,3 +627,40 @@ def test_one_label_with_one_policy_per_track_is_one_table_row(tmp_path: Path, ca
               agent_name="cfg-seed0").run(progress=False)  # fmt: skip
     summary = read_summaries([tmp_path / p / "eval" for p in ("cfg-S-seed0", "cfg-J-seed0", "other")])
     assert sorted(summary["agent"]) == ["cfg-seed0 (cfg-J-seed0)", "cfg-seed0 (cfg-S-seed0)", "cfg-seed0 (other)"]
+
+
+def test_compare_pairs_two_evaluations_scene_by_scene_from_their_valid_records(tmp_path: Path, capsys) -> None:
+    """``racebench compare``: pairs on shared (env id, seed), McNemar's exact p on the discordant laps, an edited
+    record never counted, a folder of two policies refused by name."""
+    from scipy.stats import binomtest
+
+    from racebench import cli
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    Evaluator("follow", ["RaceObs-S-v0"], episodes=6, out_dir=a).run(progress=False)
+    Evaluator("hover", ["RaceObs-S-v0", "RaceObs-J-Level1-v0"], episodes=4, out_dir=b).run(progress=False)
+    follow = load_records(a).set_index("seed")["success"].astype(bool)
+    wins = int(follow.iloc[:4].sum())  # hover never finishes: every pair follow finished is discordant
+    assert wins > 0  # seeds 1000000-1000001: follow finishes, so there are discordant pairs to count
+    assert cli.main(["compare", str(a), str(b), "--out", str(tmp_path / "pairs.csv")]) == 0
+    assert "McNemar's exact test" in capsys.readouterr().out
+    pairs = pd.read_csv(tmp_path / "pairs.csv").set_index("env_id")
+    assert list(pairs.index) == ["RaceObs-S-v0", "all"]  # the J id was flown by one side only: not paired
+    expected_p = binomtest(0, wins).pvalue if wins else 1.0
+    counts = pairs.loc["all", ["pairs", "successes_a", "successes_b", "only_a", "only_b"]].tolist()
+    assert counts == [4, wins, 0, wins, 0]
+    assert pairs.loc["all", "p"] == pytest.approx(expected_p)
+    # An edited record (its outcome flipped) fails its digest: left out, its scene no longer paired.
+    records = sorted((a / "records").glob("*.json"))
+    first = next(path for path in records if json.loads(path.read_text())["seed"] == EVAL_SEED_BASE)
+    record = json.loads(first.read_text())
+    record["success"] = not record["success"]
+    first.write_text(json.dumps(record))
+    assert paired_comparison(a, b)[1].set_index("env_id").loc["all", "pairs"] == 3
+    for record_file in (b / "records").glob("*.json"):  # two policies in one folder
+        (a / "records" / record_file.name).write_bytes(record_file.read_bytes())
+    with pytest.raises(SystemExit, match=r"racebench compare: .* holds 2 policies' episodes \(follow, hover\)"):
+        cli.main(["compare", str(a), str(b)])
+    Evaluator("hover", ["RaceObs-Circle-Level1-v0"], episodes=1, out_dir=tmp_path / "c").run(progress=False)
+    with pytest.raises(SystemExit, match=r"share no \(env_id, seed\) episode to pair"):
+        cli.main(["compare", str(b), str(tmp_path / "c")])
