@@ -160,6 +160,10 @@ def test_bad_settings_are_named() -> None:
         DaggerConfig(teacher="planner", path_aux_weight=1.0).validate()
     with pytest.raises(ValueError, match="mixture_sigma must be > 0"):
         DaggerConfig(mixture_sigma=0.0).validate()
+    with pytest.raises(ValueError, match="freeze_features_after must be an iteration >= 0"):
+        DaggerConfig(freeze_features_after=-1).validate()
+    with pytest.raises(ValueError, match="freeze_features_after needs augment_shift 0"):
+        DaggerConfig(freeze_features_after=2, augment_shift=1).validate()
 
 
 def test_the_learning_rate_falls_linearly_from_the_first_iteration_to_the_last() -> None:
@@ -394,6 +398,60 @@ def test_weight_decay_and_depth_shifts_reach_the_fit(tmp_path: Path) -> None:
     chunks = len(seen[0]) // 16
     assert np.array_equal(seen[0], np.tile(seen[0][:chunks], (16, 1)))  # one shift per chunk, over its 16 steps
     assert len({tuple(row) for s in seen for row in s}) > 1  # drawn, not fixed
+
+
+def test_frozen_features_train_the_gru_and_heads_on_the_same_features_and_leave_the_cnn(tmp_path: Path) -> None:
+    """freeze_features_after: the loss on the fixed features is the loss through the CNN; a fit then changes the GRU
+    and heads and leaves the feature layers as they were; the run switches at that iteration and resumes."""
+    import gymnasium as gym
+    import torch
+
+    from racebench.training.dagger import dataset_features, fit, make_student, sequence_terms
+
+    env = gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast")
+    model = make_student(env, seed=0)
+    env.close()
+    policy = model.policy
+    rng = np.random.default_rng(0)
+    data = Dataset(capacity=200, depth_size=64)
+    for n in (40, 50, 30):
+        data.add_segment(rng.normal(size=(n, 17)).astype(np.float32), rng.random((n, 1, 64, 64), np.float32),
+                         rng.normal(size=(n, 4)).astype(np.float32))  # fmt: skip
+    first, count, _ = data.chunks(16)
+    states = torch.zeros(len(first), policy.lstm_actor.hidden_size)
+    features = dataset_features(policy, data)
+    with torch.no_grad():
+        through_cnn, _ = sequence_terms(policy, data, first, count, states, 16)
+        fixed, _ = sequence_terms(policy, data, first, count, states, 16, features=features)
+    assert torch.allclose(through_cnn, fixed, atol=1e-6)
+    with pytest.raises(ValueError, match="fixed features cannot be shifted"):
+        sequence_terms(policy, data, first, count, states, 16, shifts=np.zeros((len(first), 2), int), features=features)
+
+    extractor = {k: v.clone() for k, v in policy.pi_features_extractor.state_dict().items()}
+    gru = {k: v.clone() for k, v in policy.lstm_actor.state_dict().items()}
+    config = DaggerConfig(epochs=1, batch_size=64, sequence_length=16)
+    optimizer = torch.optim.Adam(policy.parameters(), lr=1e-3)
+    fit(policy, data, config, optimizer, rng, frozen_features=True)
+    after = policy.pi_features_extractor.state_dict()
+    assert all(torch.equal(extractor[k], after[k]) for k in extractor)  # the CNN and state MLP: untouched
+    assert any(not torch.equal(gru[k], v) for k, v in policy.lstm_actor.state_dict().items())  # the GRU: fitted
+    fit(policy, data, config, optimizer, rng)  # unfrozen: the feature layers train again
+    assert any(not torch.equal(extractor[k], v) for k, v in policy.pi_features_extractor.state_dict().items())
+
+    # A run: iteration 0 trains the feature layers, iteration 1 does not (stopped after iteration 0 and resumed).
+    run = DaggerConfig(iterations=2, steps_per_iteration=128, n_envs=4, epochs=1, batch_size=64, sequence_length=16,
+                       freeze_features_after=1, keep_iterations=0)  # fmt: skip
+    start = make_student(gym.make("RaceObs-S-v0", obs_mode="vision", renderer="raycast"), seed=0).policy.state_dict()
+    distill(dataclasses.replace(run, iterations=1), tmp_path, eval_episodes=0)
+    first = SB3Agent(tmp_path / "vision-dagger-S.zip", trust_code=True).model.policy.state_dict()
+    distill(run, tmp_path, eval_episodes=0, resume=True)
+    second = SB3Agent(tmp_path / "vision-dagger-S.zip", trust_code=True).model.policy.state_dict()
+    cnn = [k for k in first if k.startswith("pi_features_extractor.")]
+    gru = [k for k in first if k.startswith("lstm_actor.")]
+    assert cnn and gru
+    assert any(not torch.equal(start[k], first[k]) for k in cnn)  # iteration 0 trained them
+    assert all(torch.equal(first[k], second[k]) for k in cnn)  # iteration 1 did not
+    assert any(not torch.equal(first[k], second[k]) for k in gru)  # but fitted the GRU
 
 
 def test_a_feed_forward_student(tmp_path: Path) -> None:

@@ -117,6 +117,13 @@ class DaggerConfig:
     # shift for every step of a chunk; edges replicated; 0: off). The augmentation of DrQ (Kostrikov et al. 2021), for
     # the same generalisation gap: a 1-2 px shift moves an obstacle's bearing by 1.4-2.8 degrees at 64 px and 90 deg.
     augment_shift: int = 0
+    # From this iteration on (None: never) the student's feature layers (depth CNN and state MLP) stop training: each
+    # fit computes the aggregate's features once, without gradient, and trains the GRU and heads on them. Why: ~90 %
+    # of a run's hour is fitting, and the CNN's forward and backward passes are ~45 % of a fit (README, "Fewer passes
+    # for more data underfits"); the data-scaling projection (experiments/data_scaling.txt) makes the issue's targets a
+    # matter of labelled steps per hour. What it may cost: the depth features stop improving with the later data.
+    # Recurrent students; not with augment_shift (shifted images need the CNN's pass).
+    freeze_features_after: int | None = None
     # Loss weight of an auxiliary task (0: off): a head used only in training (not part of the checkpoint) reads the
     # student's GRU output and predicts the teacher's line ahead, the points 1, 2, 3 and 4 m further along it in the
     # body frame (m; :func:`line_ahead`), and each fit minimises the action MSE plus this times that prediction's
@@ -256,6 +263,14 @@ class DaggerConfig:
             (0.0 <= self.replay_failed < 1.0, "replay_failed must be in [0, 1)"),
             (self.weight_decay >= 0.0, "weight_decay must be >= 0"),
             (0 <= self.augment_shift <= 8, "augment_shift must be a whole number of pixels in [0, 8]"),
+            (
+                self.freeze_features_after is None or self.freeze_features_after >= 0,
+                "freeze_features_after must be an iteration >= 0 (or null: never)",
+            ),
+            (
+                self.freeze_features_after is None or self.augment_shift == 0,
+                "freeze_features_after needs augment_shift 0 (a shifted image needs the CNN's pass)",
+            ),
             (self.path_aux_weight >= 0.0, "path_aux_weight must be >= 0"),
             (self.aux_task in AUX_TASKS, f"aux_task must be one of {AUX_TASKS}, got {self.aux_task!r}"),
             (
@@ -770,19 +785,29 @@ def make_teacher(config: DaggerConfig) -> PlannerAgent | FastPlannerAgent:
     return load_agent(config.teacher)
 
 
-def chunk_start_states(policy: Any, dataset: Dataset, chunks: tuple, batch: int = 4096) -> torch.Tensor:
-    """The GRU state each chunk starts from under the current student: ``(n_chunks, H)``.
-
-    The student runs without gradient through every segment in order, chunk by chunk, all segments side by
-    side (their ``position``-th chunks together); a chunk at position 0 starts from zero.
-    """
-    first, count, position = chunks
-    length = int(count.max()) if len(count) else 1
+def dataset_features(policy: Any, dataset: Dataset, batch: int = 4096) -> torch.Tensor:
+    """The student's features (:func:`student_features`) of every stored step, without gradient: ``(size, F)``."""
     with torch.no_grad():
-        features = torch.cat([
+        return torch.cat([
             student_features(policy, dataset.observations(np.arange(a, min(a + batch, dataset.size))))
             for a in range(0, dataset.size, batch)
         ])  # fmt: skip
+
+
+def chunk_start_states(
+    policy: Any, dataset: Dataset, chunks: tuple, batch: int = 4096, features: torch.Tensor | None = None
+) -> torch.Tensor:  # fmt: skip
+    """The GRU state each chunk starts from under the current student: ``(n_chunks, H)``.
+
+    The student runs without gradient through every segment in order, chunk by chunk, all segments side by
+    side (their ``position``-th chunks together); a chunk at position 0 starts from zero. ``features``: the
+    stored steps' features if already computed (:func:`dataset_features`).
+    """
+    first, count, position = chunks
+    length = int(count.max()) if len(count) else 1
+    if features is None:
+        features = dataset_features(policy, dataset, batch)
+    with torch.no_grad():
         states = torch.zeros(len(first), policy.lstm_actor.hidden_size)
         segment = np.cumsum(position == 0) - 1  # each chunk's segment
         carried = torch.zeros(int(segment[-1]) + 1 if len(segment) else 0, policy.lstm_actor.hidden_size)
@@ -810,24 +835,31 @@ def sequence_loss(
 def sequence_terms(
     policy: Any, dataset: Dataset, first: np.ndarray, count: np.ndarray, states: torch.Tensor, length: int,
     weighted: bool = False, shifts: np.ndarray | None = None, path_head: torch.nn.Module | None = None,
-    mixture_sigma: float = 0.2,
+    mixture_sigma: float = 0.2, features: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:  # fmt: skip
     """:func:`sequence_loss` and, with ``path_head``, the auxiliary loss: the mean squared error of the head's
     prediction from each step's GRU output against the stored target, over the real steps that have one
     (``aux_mask``; unweighted). Without a head the second term is ``None``. A student with a mixture head
     (:class:`~racebench.training.policies.MixtureActionHead`) is fitted with its scaled mixture loss
     (:func:`~racebench.training.policies.mixture_action_loss`, standard deviation ``mixture_sigma``) in place of
-    the squared error, averaged the same way."""
+    the squared error, averaged the same way. ``features``: every stored step's features, fixed
+    (:func:`dataset_features`; the feature layers then get no gradient), in place of the depth CNN's pass."""
     offsets = np.arange(length)
     steps = np.minimum(first[:, None] + offsets, first[:, None] + count[:, None] - 1)
     index = steps.T.reshape(-1)  # time-major: (length * chunks)
-    batch = dataset.batch(index)
-    if shifts is not None:
-        batch["depth"] = shift_depth(batch["depth"], np.tile(shifts, (length, 1)))
-    target = batch.pop("action").view(length, len(first), -1)
-    weight = batch.pop("weight").view(length, len(first), 1)
-    features = student_features(policy, batch).view(length, len(first), -1)
-    actions, output = student_unroll(policy, features, states[None])
+    if features is None:
+        batch = dataset.batch(index)
+        if shifts is not None:
+            batch["depth"] = shift_depth(batch["depth"], np.tile(shifts, (length, 1)))
+        target, weight = batch.pop("action"), batch.pop("weight")
+        inputs = student_features(policy, batch)
+    else:
+        if shifts is not None:
+            raise ValueError("dagger: fixed features cannot be shifted (augment_shift needs the CNN's pass)")
+        target, weight = torch.from_numpy(dataset.action[index]), torch.from_numpy(dataset.weight[index])
+        inputs = features[torch.from_numpy(index)]
+    target, weight = target.view(length, len(first), -1), weight.view(length, len(first), 1)
+    actions, output = student_unroll(policy, inputs.view(length, len(first), -1), states[None])
     real = torch.from_numpy(offsets[:, None] < count[None, :]).unsqueeze(-1)
     mask = real * weight if weighted else real
     if isinstance(policy.action_net, MixtureActionHead):
@@ -881,7 +913,7 @@ def iteration_learning_rate(config: DaggerConfig, iteration: int) -> float:
 
 def fit(
     policy: Any, dataset: Dataset, config: DaggerConfig, optimizer: Any, rng: np.random.Generator,
-    path_head: torch.nn.Module | None = None, aux_losses: list[float] | None = None,
+    path_head: torch.nn.Module | None = None, aux_losses: list[float] | None = None, frozen_features: bool = False,
 ) -> float:  # fmt: skip
     """``config.epochs`` passes of minibatch MSE regression over the dataset, cut at ``config.fit_samples``
     samples (a recurrent student's: ``fit_samples // sequence_length`` chunks); returns the last pass's loss.
@@ -894,8 +926,12 @@ def fit(
     A recurrent student trains on chunks of ``config.sequence_length`` steps (``batch_size // sequence_length``
     chunks a minibatch), each unrolled from the state :func:`chunk_start_states` gave it; the loss averages
     the chunks' real steps (a short chunk's padding is masked). With ``config.crash_weight`` other than 1 the
-    loss is the mean weighted by each step's stored weight (:func:`collect`).
+    loss is the mean weighted by each step's stored weight (:func:`collect`). With ``frozen_features`` (a recurrent
+    student) the feature layers are not trained: their outputs for the whole aggregate are computed once, without
+    gradient, and the GRU and heads are fitted on them (``freeze_features_after``).
     """
+    if frozen_features and not is_recurrent(policy):
+        raise ValueError("dagger: freeze_features_after fits a GRU on fixed features: it needs a recurrent student")
     if path_head is not None and not is_recurrent(policy):
         raise ValueError("dagger: the auxiliary path head reads a GRU's output: it needs a recurrent student")
     policy.set_training_mode(True)
@@ -906,7 +942,8 @@ def fit(
         length = config.sequence_length
         chunks = dataset.chunks(length)
         policy.set_training_mode(False)
-        states = chunk_start_states(policy, dataset, chunks)
+        features = dataset_features(policy, dataset) if frozen_features else None
+        states = chunk_start_states(policy, dataset, chunks, features=features)
         policy.set_training_mode(True)
         first, count, _ = chunks
         per_batch = max(1, config.batch_size // length)
@@ -922,7 +959,7 @@ def fit(
                 )
                 error, aux_error = sequence_terms(
                     policy, dataset, first[pick], count[pick], states[pick], length, weighted, shifts, path_head,
-                    config.mixture_sigma,
+                    config.mixture_sigma, features,
                 )  # fmt: skip
                 total = error if aux_error is None else error + config.path_aux_weight * aux_error
                 optimizer.zero_grad()
@@ -1148,7 +1185,8 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         for group in optimizer.param_groups:
             group["lr"] = learning_rate
         aux_losses: list[float] = []
-        loss = fit(policy, dataset, config, optimizer, rng, path_head, aux_losses)
+        frozen = config.freeze_features_after is not None and k >= config.freeze_features_after
+        loss = fit(policy, dataset, config, optimizer, rng, path_head, aux_losses, frozen_features=frozen)
         if path_head is not None:  # the auxiliary task's loss over the last pass (m²)
             flown["aux_loss"] = float(np.mean(aux_losses)) if aux_losses else float("nan")
         # where an iteration's time goes: flying (teacher, student, envs) against fitting (grows with the aggregate)
