@@ -8,7 +8,8 @@ paired by ``(env_id, seed)``: the seed protocol gives both agents the same scene
 rate with its Wilson interval, its mean lap over its successful laps, and what ended its failed laps.
 Then it prints the discordant pairs (laps only one agent finished) and the two-sided exact binomial p-value on
 them, which is McNemar's exact test. Unpaired intervals overlap long before a paired test can tell two agents
-apart, which is why this exists.
+apart, which is why this exists. ``racebench compare A B`` is the package's version: from the folders' validated
+records (never their CSVs), per env id and pooled.
 """
 
 from __future__ import annotations
