@@ -282,22 +282,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     _configure_logging(args.quiet, args.verbose)
     log.debug(f"racebench {racebench.__version__} from {Path(racebench.__file__).parent}, env version "
               f"{racebench.ENV_VERSION}, arguments {vars(args)}")  # fmt: skip
-    try:
-        return _dispatch(args)
-    except BrokenPipeError:  # `racebench table ... | head`: the reader left, which is fine
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 0
-
-
-def _dispatch(args: argparse.Namespace) -> int:
-    """Run the command ``args`` names."""
     if args.command == "leaderboard":
         from racebench.leaderboard.command import run as run_leaderboard
 
         return run_leaderboard(args)
     if args.command == "envs":
-        print("\n".join(racebench.ENV_IDS))
-        sys.stdout.flush()
+        _emit("\n".join(racebench.ENV_IDS))
     elif args.command == "fly":
         from racebench.agents import AgentLoadError, parse_agent_kwargs
 
@@ -392,7 +382,7 @@ def _dispatch(args: argparse.Namespace) -> int:
             Path(args.out).write_text(text)
             log.info(f"wrote {args.out}")
         else:
-            print(text)
+            _emit(text)
     elif args.command == "compare":
         return _compare(args)
     elif args.command == "plot":
@@ -550,6 +540,15 @@ def _sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def _emit(text: str) -> None:
+    """Print a command's result; a reader that leaves early (`racebench table ... | head`) is no error."""
+    try:
+        print(text)
+        sys.stdout.flush()
+    except BrokenPipeError:  # stdout's reader is gone: send the rest nowhere, so the exit's flush cannot fail
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
 def _summaries(results: Sequence[str], command: str):
     """Summaries recomputed from the records of result directories; a bad path is a one-line error."""
     from racebench.evaluation import read_summaries
@@ -568,12 +567,15 @@ def _compare(args: argparse.Namespace) -> int:
         sides, pairs = paired_comparison(args.a, args.b)
     except (OSError, ValueError) as exc:
         raise SystemExit(f"racebench compare: {exc}") from exc
-    for key, side in zip("ab", sides.itertuples(index=False), strict=True):
-        print(f"{key}: {side.evaluation}: {side.agent} (policy {side.policy_sha256}) {side.successes}/{side.n} "
-              f"({100 * side.success_rate:.0f} % [{100 * side.sr_ci_low:.0f}–{100 * side.sr_ci_high:.0f}]), "
-              f"mean lap {side.lap_time_mean:.2f} s; failures {side.failures}")  # fmt: skip
-    print("laps only a / only b finished of the pairs (same env id and seed); p: McNemar's exact test (two-sided)")
-    print(pairs.to_string(index=False, formatters={"p": "{:.3f}".format}))
+    lines = [
+        f"{key}: {side.evaluation}: {side.agent} (policy {side.policy_sha256}) {side.successes}/{side.n} "
+        f"({100 * side.success_rate:.0f} % [{100 * side.sr_ci_low:.0f}–{100 * side.sr_ci_high:.0f}]), "
+        f"mean lap {side.lap_time_mean:.2f} s; failures {side.failures}"
+        for key, side in zip("ab", sides.itertuples(index=False), strict=True)
+    ]  # fmt: skip
+    lines.append("laps only a / only b finished of the pairs (same env id and seed); p: McNemar's exact test")
+    lines.append(pairs.to_string(index=False, formatters={"p": "{:.3f}".format}))
+    _emit("\n".join(lines))
     if args.out:
         pairs.to_csv(args.out, index=False)
         log.info(f"wrote {args.out}")
