@@ -547,6 +547,20 @@ def _tracks_overlap(track_sets: list[set[str]]) -> bool:
     return False
 
 
+def load_result_dir(path: str | Path) -> tuple[Path, pd.DataFrame]:
+    """A result directory (or the ``summary.csv`` / ``episodes.csv`` in it) and its valid records' episodes; a path
+    without records, or with no valid one, is an error naming it."""
+    path = Path(path)
+    if path.is_file() and path.name in ("summary.csv", "episodes.csv"):
+        path = path.parent
+    if not (path / "records").is_dir():
+        raise FileNotFoundError(f"no evaluation records at {str(path)!r} (expected {str(path / 'records')!r})")
+    episodes = load_records(path)
+    if episodes.empty:
+        raise ValueError(f"no valid evaluation records in {str(path)!r}")
+    return path, episodes
+
+
 def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
     """Summaries of result directories, recomputed from their validated records.
 
@@ -554,17 +568,7 @@ def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
     never read back, so an edited CSV cannot change a table. Several policies under one label form one row when
     their tracks are disjoint (one policy per track), else each is labelled with its directory's name.
     """
-    loaded: list[tuple[Path, pd.DataFrame]] = []
-    for path in paths:
-        path = Path(path)
-        if path.is_file() and path.name in ("summary.csv", "episodes.csv"):
-            path = path.parent
-        if not (path / "records").is_dir():
-            raise FileNotFoundError(f"no evaluation records at {str(path)!r} (expected {str(path / 'records')!r})")
-        episodes = load_records(path)
-        if episodes.empty:
-            raise ValueError(f"no valid evaluation records in {str(path)!r}")
-        loaded.append((path, episodes))
+    loaded = [load_result_dir(path) for path in paths]
     if not loaded:
         raise ValueError("no result directories given")
     # One label, several policies. When each policy was flown on tracks no other one was (a sweep's per-track runs
@@ -611,12 +615,7 @@ def paired_comparison(a_dir: str | Path, b_dir: str | Path) -> tuple[pd.DataFram
     env id, then ``all`` of them pooled, the pairs, each side's successes, ``only_a``, ``only_b`` and ``p``.
     """
     episodes, sides = [], []
-    for path in (Path(a_dir), Path(b_dir)):
-        if not (path / "records").is_dir():
-            raise FileNotFoundError(f"no evaluation records at {str(path)!r} (expected {str(path / 'records')!r})")
-        frame = load_records(path)
-        if frame.empty:
-            raise ValueError(f"no valid evaluation records in {str(path)!r}")
+    for path, frame in (load_result_dir(a_dir), load_result_dir(b_dir)):
         policies = sorted(frame["policy_sha256"].astype(str).unique())
         if len(policies) > 1:
             labels = ", ".join(sorted(set(frame["agent"].astype(str))))
