@@ -7,7 +7,7 @@ import os
 
 # Before anything loads torch's OpenMP runtime, which reads this once: idle OpenMP threads sleep instead of
 # spinning. With 2 torch threads on 2 cores and any other busy process, spinning threads wait at every barrier for
-# a descheduled peer: one PPO update took 28.7 s instead of 1.2 s (README, "Threads"). Idle, it costs nothing
+# a descheduled peer: one PPO update took 28.7 s instead of 1.2 s (docs/training.md, "Threads"). Idle, it costs nothing
 # measurable. A value the user set is kept.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 

@@ -405,7 +405,7 @@ def _bench_evaluation(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
             rec.echo(f"  (no committed {kind} checkpoint beside this install: evaluation rows skipped)")
             continue
         torch_agent = load_agent(str(path))
-        onnx_path = export_onnx(torch_agent.model, exported / f"{path.stem}.onnx")
+        onnx_path = export_onnx(torch_agent.model, exported / f"{path.stem}.onnx", torch_agent.normalizer)
         runs += [
             (kind, renderers, path.stem, torch_agent),
             (kind, renderers, f"{path.stem} (ONNX)", load_agent(str(onnx_path))),

@@ -12,7 +12,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pybullet as p
+
+from racebench.bullet import p
 
 
 class DepthCamera:

@@ -14,11 +14,18 @@ from typing import Any
 import gymnasium as gym
 
 import racebench
-from racebench.records import sha256_file
+from racebench.agents import BUILTIN_AGENTS
+from racebench.records import has_trajectories, sha256_file
 
 SCENE_FORMATS: tuple[str, ...] = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")
-AGENT_HELP = "agent spec: random | hover | planner | follow | model.zip | policy.onnx | module:Class | file.py:Class"
+# From the registry of built-ins, so a new built-in agent is listed without anyone remembering to.
+AGENT_HELP = f"agent spec: {' | '.join(BUILTIN_AGENTS)} | model.zip | policy.onnx | module:Class | file.py:Class"
 AGENT_KWARGS_HELP = "JSON object of keyword arguments for a module:Class agent's constructor, e.g. '{\"k\": 1}'"
+VECNORMALIZE_HELP = (
+    "an SB3 .zip's VecNormalize statistics file (default: the one matched to it by name, beside it or in "
+    "rl-baselines3-zoo's <run>/<env_id>/vecnormalize.pkl; an error when that is ambiguous)"
+)
+NO_VECNORMALIZE_HELP = "fly an SB3 .zip without the VecNormalize statistics found near it (part of its policy hash)"
 log = logging.getLogger("racebench")
 
 
@@ -35,15 +42,22 @@ def fly(
     obs_mode: str | None = None,
     trust_code: bool = False,
     agent_kwargs: dict | None = None,
+    vecnormalize: str | Path | bool | None = None,
 ) -> dict:
     """Fly one episode of ``env_id`` with any agent spec ``evaluate`` accepts; return its outcome as a dict.
+    ``vecnormalize``: an SB3 checkpoint's statistics (:func:`racebench.agents.resolve_vecnormalize`).
 
-    Raises :class:`~racebench.agents.AgentLoadError` on a bad spec or an untrusted one without ``trust_code``.
+    Raises :class:`~racebench.agents.AgentLoadError` on a bad spec, an untrusted one without ``trust_code``, or an
+    ``obs_mode`` other than the one the policy reads (built-in agents, which never read their observation, fly
+    either).
     """
-    from racebench.agents import load_agent
+    from racebench.agents import AgentLoadError, load_agent
     from racebench.evaluation import SingleTorchThread, run_episode
 
-    pilot = load_agent(agent, trust_code=trust_code, agent_kwargs=agent_kwargs)
+    pilot = load_agent(agent, trust_code=trust_code, agent_kwargs=agent_kwargs, vecnormalize=vecnormalize)
+    if obs_mode is not None and obs_mode != pilot.obs_mode and agent not in BUILTIN_AGENTS:
+        # checked before flying: the policy would otherwise fail inside its first act() with an obscure message
+        raise AgentLoadError(f"this policy takes {pilot.obs_mode} observations (use --obs-mode {pilot.obs_mode})")
     env = _make(env_id, obs_mode=obs_mode or pilot.obs_mode)
     with SingleTorchThread():
         result = run_episode(pilot, env, seed)
@@ -53,8 +67,8 @@ def fly(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The ``racebench`` argument parser (every option has help text; the README's command table is checked
-    against it by a test)."""
+    """The ``racebench`` argument parser (every option has help text; docs/commands.md's command table is
+    checked against it by a test)."""
     parser = argparse.ArgumentParser(prog="racebench", description=__doc__)
     parser.add_argument("--version", action="version", version=f"racebench {racebench.__version__}")
     verbosity = parser.add_mutually_exclusive_group()
@@ -69,10 +83,14 @@ def build_parser() -> argparse.ArgumentParser:
     p_fly.add_argument("--agent", default="follow", help=f"{AGENT_HELP} (default: follow)")
     p_fly.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
     p_fly.add_argument(
-        "--obs-mode", choices=("vision", "state"), default=None, help="observation mode (default: the agent's own)"
+        "--obs-mode",
+        choices=("vision", "state"),
+        default=None,
+        help="observation mode (default: the agent's own; another is refused, except by built-ins, which ignore it)",
     )
     p_fly.add_argument("--trust-code", action="store_true", help="allow a .zip or module:Class agent (runs code)")
     p_fly.add_argument("--agent-kwargs", default=None, help=AGENT_KWARGS_HELP)
+    _add_vecnormalize_options(p_fly)
 
     p_scene = sub.add_parser("scene", help="write the scene of one episode as a mesh (.glb/.obj) and JSON")
     p_scene.add_argument("--env", default="RaceObs-S-v0", help="environment id (default: RaceObs-S-v0)")
@@ -119,6 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="public: seeds 1,000,000 + i (default); private: derived from the secret salt in $RACEBENCH_PRIVATE_SALT",
     )
     p_eval.add_argument("--agent-kwargs", default=None, help=AGENT_KWARGS_HELP)
+    _add_vecnormalize_options(p_eval)
     _add_backend_options(p_eval)
     p_eval.add_argument("--task-cpus", type=float, default=1.0, help="CPUs each Ray task reserves (default 1)")
     p_eval.add_argument(
@@ -128,6 +147,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="episodes per Ray task (default: the lockstep width, at most 16, if the agent batches; else 1)",
     )
 
+    p_paper = sub.add_parser(
+        "paper-tables",
+        help="the paper's Tables II-IV, its claims and the learning curves from the committed campaign (no training)",
+    )
+    p_paper.add_argument("--root", default=".", help="the repository checkout to read (default: .)")
+    p_paper.add_argument("--out", default="results", help="output folder (default: results)")
+    p_paper.add_argument("--no-readme", action="store_true", help="leave README.md's results block as it is")
+    p_paper.add_argument(
+        "--trust-code", action="store_true",
+        help="--validation-curve: unpickle checkpoints the run folder's written.json does not list (older runs)",
+    )  # fmt: skip
+    p_paper.add_argument(
+        "--validation-curve", nargs="+", default=None, metavar="RUN_DIR",
+        help="first fly each sweep run's periodic checkpoints on validation scenes (writes its validation_curve.csv)",
+    )  # fmt: skip
     p_compare = sub.add_parser(
         "compare", help="two evaluations paired on the same scenes: exact McNemar test per env id and pooled"
     )
@@ -155,7 +189,11 @@ def build_parser() -> argparse.ArgumentParser:
     p_plot.add_argument(
         "--out", default="runs/figures", help="output directory (default runs/figures, outside version control)"
     )
-    p_plot.add_argument("--track-env", default=None, help="also draw the 3D track plot of this env id (Fig. 4)")
+    p_plot.add_argument(
+        "--track-env",
+        default=None,
+        help="also draw the 3D track plot of this env id (Fig. 4): every result directory's saved trajectories",
+    )
     p_plot.add_argument("--format", default="png", choices=("png", "pdf", "svg"), help="file format (default png)")
     p_plot.add_argument("--dpi", type=int, default=300, help="resolution of PNGs in dots per inch (default 300)")
     p_curves = sub.add_parser(
@@ -194,6 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_render.add_argument("--fps", type=int, default=25, help="frames per second of the video (default 25)")
     p_render.add_argument("--trust-code", action="store_true", help="allow a .zip or module:Class agent (runs code)")
     p_render.add_argument("--agent-kwargs", default=None, help=AGENT_KWARGS_HELP)
+    _add_vecnormalize_options(p_render)
 
     p_train = sub.add_parser("train", help="train a baseline (PPO + GRU, curriculum, multi-scene) from a YAML config")
     p_train.add_argument("--config", required=True, help="a shipped config name (e.g. vision-ppo) or a YAML file")
@@ -205,6 +244,12 @@ def build_parser() -> argparse.ArgumentParser:
     p_train.add_argument("--out", default=None, help="run directory (default runs/<name>-<track>-seed<seed>)")
     p_train.add_argument(
         "--resume", default=None, help="checkpoint .zip to continue from (a DAgger config: its run folder)"
+    )
+    p_train.add_argument(
+        "--trust-code",
+        action="store_true",
+        help="allow --resume from a checkpoint (and its VecNormalize statistics) that this run folder did not "
+        "write and that is not shipped: both are unpickled, which can run code",
     )
     p_train.add_argument("--n-envs", type=int, default=None, help="override the config's n_envs")
     p_train.add_argument(
@@ -228,6 +273,16 @@ def build_parser() -> argparse.ArgumentParser:
     p_sweep.add_argument("--out", default=None, help="output folder (default: the file's out, or runs/sweeps/<name>)")
     _add_backend_options(p_sweep)
     p_sweep.add_argument("--workers", type=int, default=2, help="CPUs of a private local Ray instance (default 2)")
+    p_sweep.add_argument(
+        "--max-runs", type=int, default=None, metavar="N",
+        help="local backend: train only the next N unfinished runs in the file's order (a campaign, run by run)",
+    )  # fmt: skip
+    p_sweep.add_argument(
+        "--trust-code",
+        action="store_true",
+        help="resume and evaluate checkpoints that a run's folder did not write itself (e.g. runs begun before "
+        "written.json existed): they are unpickled, which can run code",
+    )
 
     p_distill = sub.add_parser(
         "distill", help="teacher-student baseline: a depth policy imitates the privileged planner (DAgger)"
@@ -252,9 +307,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     p_onnx = sub.add_parser("export-onnx", help="export an SB3 checkpoint's deterministic actor to ONNX")
-    p_onnx.add_argument("checkpoint", help="SB3 / sb3-contrib .zip (feed-forward or racebench GRU policy)")
+    p_onnx.add_argument("checkpoint", help="SB3 / sb3-contrib .zip (PPO/A2C feed-forward or racebench GRU policy)")
     p_onnx.add_argument("--out", default=None, help="ONNX path (default: beside the checkpoint, .onnx)")
     p_onnx.add_argument("--trust-code", action="store_true", help="allow a checkpoint outside the shipped ones")
+    _add_vecnormalize_options(p_onnx)
 
     p_export = sub.add_parser(
         "export-policy", help="write an SB3 checkpoint without its optimizer state (a policy-only .zip to commit)"
@@ -262,6 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_export.add_argument("checkpoint", help="SB3 / sb3-contrib .zip")
     p_export.add_argument("--out", required=True, help="the policy-only .zip to write")
     p_export.add_argument("--trust-code", action="store_true", help="allow a checkpoint outside the shipped ones")
+    _add_vecnormalize_options(p_export)
 
     p_bench = sub.add_parser("bench", help="throughput: depth frames/s of both renderers, env steps/s, memory")
     p_bench.add_argument("--quick", action="store_true", help="smoke test of ~10 s (tiny sizes)")
@@ -278,7 +335,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``racebench`` console script."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    args, unknown = parser.parse_known_args(words)
+    if unknown:
+        _parser_of(parser, args, words, unknown).error(f"unrecognized arguments: {' '.join(unknown)}")
     _configure_logging(args.quiet, args.verbose)
     log.debug(f"racebench {racebench.__version__} from {Path(racebench.__file__).parent}, env version "
               f"{racebench.ENV_VERSION}, arguments {vars(args)}")  # fmt: skip
@@ -293,7 +353,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         try:
             kwargs = parse_agent_kwargs(args.agent_kwargs)
-            result = fly(args.env, args.agent, args.seed, args.obs_mode, args.trust_code, kwargs)
+            result = fly(args.env, args.agent, args.seed, args.obs_mode, args.trust_code, kwargs, _vecnormalize(args))
         except AgentLoadError as exc:
             raise SystemExit(f"racebench fly: {exc}") from exc
         outcome = "SUCCESS" if result["success"] else f"FAILED ({result['crash_reason'] or 'time limit'})"
@@ -332,7 +392,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             resolve_device(args.device)
             result = run_training(
                 config, args.track, args.steps, args.seed, args.out, args.resume,
-                eval_episodes=args.eval_episodes, device=args.device,
+                eval_episodes=args.eval_episodes, device=args.device, trust_code=args.trust_code,
             )  # fmt: skip
         except (OSError, ValueError) as exc:
             raise SystemExit(f"racebench train: {exc}") from exc
@@ -341,8 +401,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         from racebench.agents import AgentLoadError, SB3Agent, export_onnx
 
         try:
-            agent = SB3Agent(args.checkpoint, trust_code=args.trust_code)
-            out = export_onnx(agent.model, args.out or Path(args.checkpoint).with_suffix(".onnx"))
+            agent = SB3Agent(args.checkpoint, trust_code=args.trust_code, vecnormalize=_vecnormalize(args))
+            # The checkpoint's statistics change its actions: they go into the graph.
+            out = export_onnx(agent.model, args.out or Path(args.checkpoint).with_suffix(".onnx"), agent.normalizer)
         except (AgentLoadError, ValueError) as exc:
             raise SystemExit(f"racebench export-onnx: {exc}") from exc
         log.info(f"wrote {out} (sha256 {sha256_file(out)})")
@@ -383,6 +444,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             log.info(f"wrote {args.out}")
         else:
             _emit(text)
+    elif args.command == "paper-tables":
+        return _paper_tables(args)
     elif args.command == "compare":
         return _compare(args)
     elif args.command == "plot":
@@ -404,12 +467,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             except ValueError as exc:  # a figure whose results are absent is skipped, with the reason
                 log.warning(f"skipped {name}: {exc}")
         if args.track_env:
-            source = next((Path(r) for r in args.results if (Path(r) / "trajectories").is_dir()), None)
-            if source is None:
+            folders = [Path(r) if Path(r).is_dir() else Path(r).parent for r in args.results]  # a CSV: its folder
+            sources = [folder for folder in folders if has_trajectories(folder)]
+            if not sources:
                 raise SystemExit("racebench plot: --track-env needs a result directory made with --save-trajectories")
+            if len(sources) < len(folders):
+                without = ", ".join(str(folder) for folder in folders if folder not in sources)
+                log.warning(f"no saved trajectories in {without}: not in the track figure")
             try:
                 written.append(
-                    plots.plot_track_3d(source, args.track_env, out / f"track_{args.track_env}.{fmt}", dpi=dpi)
+                    plots.plot_track_3d(sources, args.track_env, out / f"track_{args.track_env}.{fmt}", dpi=dpi)
                 )
             except ValueError as exc:
                 raise SystemExit(f"racebench plot: {exc}") from exc
@@ -442,8 +509,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             kwargs = parse_agent_kwargs(args.agent_kwargs)
             video, result = render_episode_video(
-                args.agent, args.env, args.seed, args.out, args.fps, trust_code=args.trust_code, agent_kwargs=kwargs
-            )
+                args.agent, args.env, args.seed, args.out, args.fps, trust_code=args.trust_code, agent_kwargs=kwargs,
+                vecnormalize=_vecnormalize(args),
+            )  # fmt: skip
         except (AgentLoadError, ValueError) as exc:
             raise SystemExit(f"racebench render: {exc}") from exc
         log.info(f"wrote {video} ({outcome_text(result)})")
@@ -458,6 +526,22 @@ def main(argv: Sequence[str] | None = None) -> int:
             settings.vector_envs = args.num_envs
         run_benchmark(settings, out=args.out)
     return 0
+
+
+def _parser_of(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, words: list[str], unknown: list[str]
+) -> argparse.ArgumentParser:
+    """The (sub-)command parser that should report ``unknown`` words: the innermost command's, so its usage is
+    shown (``parse_args`` reports them with the top-level usage); the top-level parser's if they precede the
+    command word."""
+    command = words.index(args.command) if args.command in words else len(words)
+    if set(words[:command]) & set(unknown):
+        return parser
+    while True:
+        action = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if action is None or getattr(args, action.dest, None) is None:
+            return parser
+        parser = action.choices[getattr(args, action.dest)]
 
 
 class _BelowWarning(logging.Filter):
@@ -501,6 +585,18 @@ def _add_backend_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_vecnormalize_options(parser: argparse.ArgumentParser) -> None:
+    """``--vecnormalize PATH`` and ``--no-vecnormalize`` of the commands that load an SB3 checkpoint."""
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--vecnormalize", default=None, metavar="PATH", help=VECNORMALIZE_HELP)
+    group.add_argument("--no-vecnormalize", action="store_true", help=NO_VECNORMALIZE_HELP)
+
+
+def _vecnormalize(args: argparse.Namespace) -> str | bool | None:
+    """The ``vecnormalize`` choice of the command line: a path, ``False`` (``--no-vecnormalize``) or ``None``."""
+    return False if args.no_vecnormalize else args.vecnormalize
+
+
 def _ray_options(args: argparse.Namespace, **options: Any) -> Any:
     """The :class:`~racebench.ray_backend.RayOptions` of the command line (``None`` for the local backend)."""
     from racebench.ray_backend import RayOptions
@@ -520,7 +616,9 @@ def _sweep(args: argparse.Namespace) -> int:
     try:
         if args.backend == "ray":
             require_ray()
-        sweep = load_sweep(args.sweep, args.out)
+        sweep = load_sweep(args.sweep, args.out, trust_code=args.trust_code)
+        if args.max_runs is not None and (args.backend != "local" or args.max_runs < 1):
+            raise ValueError("--max-runs is an integer >= 1, for the local backend")
         options = _ray_options(args, local_cpus=args.workers)
         if options is not None:
             options.validate()
@@ -532,7 +630,7 @@ def _sweep(args: argparse.Namespace) -> int:
         rate = "" if row["success_rate"] is None else f", success rate {row['success_rate']:.2f}"
         print(f"{row['run']}: {row['status']} ({row['timesteps']} steps{rate})", flush=True)
 
-    rows = run_sweep(sweep, args.backend, options, on_row=show)
+    rows = run_sweep(sweep, args.backend, options, on_row=show, max_runs=args.max_runs)
     print(f"wrote {sweep.out / 'sweep.csv'}")
     failed = [row["run"] for row in rows if row["status"].startswith("failed")]
     if failed:
@@ -557,6 +655,25 @@ def _summaries(results: Sequence[str], command: str):
         return read_summaries(results)
     except (OSError, ValueError) as exc:
         raise SystemExit(f"racebench {command}: {exc}") from exc
+
+
+def _paper_tables(args: argparse.Namespace) -> int:
+    """``racebench paper-tables``: Tables II-IV, claims.md, the README block and the learning curves."""
+    from racebench.paper import validation_curve, write_report
+
+    root = Path(args.root)
+    try:
+        if not root.is_dir():
+            raise ValueError(f"{root} is not a folder")
+        for run in args.validation_curve or []:
+            curve = validation_curve(run, trust_code=args.trust_code)
+            log.info(f"{run}: validation success {', '.join(f'{r:.2f}' for r in curve['success_rate'])}")
+        readme = None if args.no_readme else root / "README.md"
+        written = write_report(root, args.out, readme)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"racebench paper-tables: {exc}") from exc
+    _emit("\n".join(f"wrote {path}" for path in written))
+    return 0
 
 
 def _compare(args: argparse.Namespace) -> int:
@@ -586,15 +703,15 @@ def _export_policy(args: argparse.Namespace) -> int:
     """``racebench export-policy``: the checkpoint's policy without optimizer state, checked to act the same."""
     import shutil
 
-    from racebench.agents import AgentLoadError, SB3Agent, export_policy, vecnormalize_path
+    from racebench.agents import AgentLoadError, SB3Agent, export_policy
 
     source, out = Path(args.checkpoint), Path(args.out)
     try:
-        agent = SB3Agent(source, trust_code=args.trust_code)
+        agent = SB3Agent(source, trust_code=args.trust_code, vecnormalize=_vecnormalize(args))
         if out.resolve() == source.resolve():
             raise ValueError(f"--out {str(out)!r} is the checkpoint itself; write the policy-only copy elsewhere")
         # Observation statistics change the actions, so they travel with the policy (rewards-only ones do not).
-        stats = vecnormalize_path(source) if agent.normalizer is not None else None
+        stats = agent.stats_path if agent.normalizer is not None else None
         beside = out.parent / "vecnormalize.pkl"
         if beside.exists() and (stats is None or beside.read_bytes() != stats.read_bytes()):
             raise ValueError(f"{str(beside)!r} would be read as this policy's observation statistics; remove it")
@@ -633,6 +750,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             batch=args.batch,
             seed_set=args.seed_set,
             agent_kwargs=agent_kwargs,
+            vecnormalize=_vecnormalize(args),
             backend=args.backend,
             ray_options=_ray_options(args, task_cpus=args.task_cpus, task_episodes=args.task_episodes),
         )
@@ -650,7 +768,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         f"{total - todo}/{total} episodes already done in {evaluator.out_dir}, {todo} to run"
     )
     summary = evaluator.run(progress=not args.quiet)
-    columns = ["env_id", "n", "successes", "success_rate", "sr_ci_low", "sr_ci_high", "lap_time_median"]
+    # the mean lap of the successful episodes, as the paper's tables and `racebench table` give it
+    columns = ["env_id", "n", "successes", "success_rate", "sr_ci_low", "sr_ci_high", "lap_time_mean"]
     order = {env_id: i for i, env_id in enumerate(evaluator.env_ids)}
     shown = summary.sort_values("env_id", key=lambda ids: ids.map(order))
     print(shown[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}"))

@@ -16,18 +16,24 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import pybullet as p
 from gymnasium import spaces
 from numba import njit
 
+from racebench.bullet import p
 from racebench.camera import DepthCamera
 from racebench.collision import CollisionChecker
-from racebench.obstacles import ObstacleGenerator
+from racebench.obstacles import (
+    CORRIDOR_MARGIN,
+    MAX_GATE_SHIFT,
+    MAX_GATE_SHIFT_Z,
+    ObstacleGenerator,
+)
 from racebench.quadrotor import Quadrotor, QuadrotorParams
 from racebench.reward import REWARD_TERMS, RewardWeights, reward_terms
 from racebench.scene import Scene
 from racebench.simulation import DroneState, RawState, Simulation
 from racebench.track import Track, load_track
+from racebench.validation import check_int, check_real, check_triple
 
 OBS_MODES: tuple[str, ...] = ("vision", "state")
 RENDERERS: tuple[str, ...] = ("pybullet", "raycast")
@@ -39,6 +45,13 @@ STATE_DIM = 17
 POSITION_SCALE = 10.0  # m per unit
 VELOCITY_SCALE = 10.0  # m/s per unit
 STATE_LIMIT = 5.0  # |state| is clipped here: 50 m, 50 m/s, 5x the max body rate
+# Parameter ranges (the table in RaceEnv's docstring gives the reasons).
+MAX_DESIRED_SPEED = 20.0  # m/s
+MAX_EPISODE_TIME = 600.0  # s
+MAX_DEPTH_NOISE_STD = 0.5
+MAX_START_SPREAD = 1.0  # m, per axis
+MIN_PHYSICS_FREQ = 100  # Hz
+MAX_PHYSICS_FREQ = 2000  # Hz
 
 
 def depth_to_uint8(depth: np.ndarray) -> np.ndarray:
@@ -125,6 +138,43 @@ class RaceEnv(gym.Env):
         depth_format: ``"float32"`` (the default and the paper's: ``(1, 64, 64)`` in [0, 1]) or ``"uint8"``
             (``(64, 64, 1)`` in [0, 255], :func:`depth_to_uint8` of the float image), which stable-baselines3's
             ``CnnPolicy`` / ``MultiInputPolicy`` treat as an image and give a NatureCNN.
+
+    Parameter ranges, checked when the env is made (``gym.make``; :meth:`set_task` checks its own the same way):
+    a value outside them, a NaN, an inf or a wrong type raises a one-line ``ValueError`` naming the parameter,
+    the value and the range. Every registered id, the curriculum and every shipped config lie well inside.
+
+    ==========================  ================  ==========================================================
+    parameter                   allowed           why
+    ==========================  ================  ==========================================================
+    ``density``                 int, 0 … 20       4× the densest id (Density5); the regions of the built-in
+                                                  tracks are nearly full at 20. Also at most 400 obstacles
+                                                  per scene (density × the track's regions): a layout's
+                                                  memory is bounded before anything is allocated
+    ``gate_shift``              0 … 2.0 m         the arena reaches 3 m past the outermost gates: a shifted
+                                                  frame stays inside it (the paper: up to 1.0 m)
+    ``gate_shift_z``            0 … 1.0 m         the ceiling is 2 m above the highest frame: 1 m is left to
+                                                  fly over a raised one (defaults to ``gate_shift``, which
+                                                  must then be within 1.0 m too)
+    ``start_spread``            3 × 0 … 1.0 m     2× the paper's ±0.5 m; the start box stays clear of the
+                                                  gate frames and above the ground by the collision radius
+    ``desired_speed``           (0, 20] m/s       the default airframe's top level speed is ≈ 20 m/s
+    ``depth_noise_std``         0 … 0.5           σ on an image in [0, 1]: beyond 0.5 it is mostly noise
+    ``max_episode_time``        (0, 600] s        40× the 15 s default; a lap takes well under 15 s
+    ``physics_freq``            int, 100 … 2000   the rate loop and the 30 ms motor lag need ≥ 100 Hz; 10×
+                                Hz                the 200 Hz default already resolves them
+    ``control_freq``            int > 0           a divisor of ``physics_freq``
+    ``quadrotor``               see below         every field finite, within
+                                                  :data:`~racebench.quadrotor.PARAM_RANGES`
+    ``reward_weights``          finite numbers    ``avoid_offset > 0``
+    ==========================  ================  ==========================================================
+
+    ``quadrotor`` fields (:class:`~racebench.quadrotor.QuadrotorParams`): mass 0.01 … 10 kg; inertia (each)
+    1e-7 … 10 kg·m², satisfying the triangle inequality as every rigid body does; max_thrust with a
+    thrust-to-weight ratio in (1, 20] (it must hover; racing quadrotors reach 10–15); arm_length 0.01 … 1 m;
+    torque_coefficient 1e-4 … 0.1 m; motor_time_constant 0 … 0.5 s; max_body_rate (each) (0, 35] rad/s
+    (≈ 2000 °/s; 0 would divide the observed rates by zero); rate_gain (each) (0, 50] 1/s (stable at 100 Hz);
+    drag_coefficients (each) 0 … 10 N/(m/s)²; collision_radius from arm_length to 0.5 m and, with the 0.08 m
+    corridor margin, less than half the track's gate opening; gravity 1 … 25 m/s² (the Moon to Jupiter).
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 50}
@@ -166,31 +216,44 @@ class RaceEnv(gym.Env):
                 raise ValueError(f"{name} must be a positive int, got {value!r}")
         if physics_freq % control_freq:
             raise ValueError(f"physics_freq ({physics_freq}) must be a multiple of control_freq ({control_freq})")
-        if physics_freq < 100:
-            raise ValueError(f"physics_freq must be >= 100 Hz for the rate loop and motor lag, got {physics_freq}")
-        _check_number("desired_speed", desired_speed, "m/s", positive=True)
-        _check_number("max_episode_time", max_episode_time, "s", positive=True)
-        _check_number("depth_noise_std", depth_noise_std, "", positive=False)
-        _check_number("gate_shift", gate_shift, "m", positive=False)
+        check_int("physics_freq", physics_freq, MIN_PHYSICS_FREQ, MAX_PHYSICS_FREQ, unit="Hz")
+        check_real("desired_speed", desired_speed, 0.0, MAX_DESIRED_SPEED, unit="m/s", low_open=True)
+        check_real("max_episode_time", max_episode_time, 0.0, MAX_EPISODE_TIME, unit="s", low_open=True)
+        check_real("depth_noise_std", depth_noise_std, 0.0, MAX_DEPTH_NOISE_STD)
+        # density, gate shifts and obstacle_kind: ObstacleGenerator checks them (also for set_task), below
+        check_real("gate_shift", gate_shift, 0.0, MAX_GATE_SHIFT, unit="m")
         if gate_shift_z is not None:
-            _check_number("gate_shift_z", gate_shift_z, "m", positive=False)
+            check_real("gate_shift_z", gate_shift_z, 0.0, MAX_GATE_SHIFT_Z, unit="m")
         if not isinstance(track, (str, os.PathLike)) or isinstance(track, bytes):
             raise ValueError(f"track must be a built-in track name or a track file path, got {track!r}")
 
         self.track: Track = load_track(track)
-        if start_spread is not None:
-            spread = np.asarray(start_spread, dtype=float)
-            if spread.shape != (3,) or np.any(spread < 0) or not np.all(np.isfinite(spread)):
-                raise ValueError(f"start_spread must be 3 non-negative numbers, got {start_spread!r}")
-            self.track = dataclasses.replace(self.track, start=dataclasses.replace(self.track.start, spread=spread))
         if isinstance(quadrotor, QuadrotorParams):
             self.params = quadrotor
-        else:
+        elif quadrotor is None or isinstance(quadrotor, dict):
             known = {f.name for f in dataclasses.fields(QuadrotorParams)}
             unknown = sorted(set(quadrotor or {}) - known)
             if unknown:
                 raise ValueError(f"quadrotor: unknown parameter {unknown[0]!r} (known: {sorted(known)})")
             self.params = QuadrotorParams(**(quadrotor or {}))
+        else:
+            raise ValueError(f"quadrotor must be a dict of its fields or a QuadrotorParams, got {quadrotor!r}")
+        if start_spread is not None:
+            spread = np.array(check_triple("start_spread", start_spread, 0.0, MAX_START_SPREAD, unit="m"))
+            # the whole start box above the ground by the collision radius: a lower start touches the ground
+            top = float(self.track.start.center[2]) - self.params.collision_radius
+            if spread[2] >= top:
+                raise ValueError(
+                    f"start_spread[2] must be < {top:g} m on track {self.track.name!r} (start height minus the "
+                    f"collision radius), got {spread[2]:g}"
+                )
+            self.track = dataclasses.replace(self.track, start=dataclasses.replace(self.track.start, spread=spread))
+        opening = min(g.inner for g in self.track.gates) / 2.0 - CORRIDOR_MARGIN
+        if self.params.collision_radius >= opening:  # no gate could be passed
+            raise ValueError(
+                f"quadrotor collision_radius must be < {opening:g} m to fit (with the {CORRIDOR_MARGIN:g} m corridor "
+                f"margin) through the gates of track {self.track.name!r}, got {self.params.collision_radius!r}"
+            )
         self.weights = RewardWeights.from_overrides(reward_weights)
         self._gate_shift_z = gate_shift_z  # None: the vertical range follows gate_shift, also after set_task
         self._next_task: dict[str, Any] = {}  # desired speed / reward weights staged by set_task
@@ -417,20 +480,20 @@ class RaceEnv(gym.Env):
         ``reward_weights`` overrides the paper's defaults (not the current weights), like the constructor.
         """
         if density is not None or gate_shift is not None or gate_shift_z is not None:
-            if gate_shift_z is not None:
-                self._gate_shift_z = gate_shift_z
+            shift_z = self._gate_shift_z if gate_shift_z is None else gate_shift_z
+            # built (and so checked) before anything is stored: a refused task leaves the env as it was
             self.generator = ObstacleGenerator(
                 self.track,
                 density=self.generator.density if density is None else density,
                 kind=self.generator.kind,
                 gate_shift=self.generator.gate_shift if gate_shift is None else gate_shift,
-                gate_shift_z=self._gate_shift_z,
+                gate_shift_z=shift_z,
                 drone_radius=self.params.collision_radius,
             )
+            self._gate_shift_z = shift_z
         if desired_speed is not None:
-            if not desired_speed > 0:
-                raise ValueError(f"desired_speed must be > 0 m/s, got {desired_speed!r}")
-            self._next_task["desired_speed"] = float(desired_speed)
+            speed = check_real("desired_speed", desired_speed, 0.0, MAX_DESIRED_SPEED, unit="m/s", low_open=True)
+            self._next_task["desired_speed"] = speed
         if reward_weights is not None:
             self._next_task["weights"] = RewardWeights.from_overrides(reward_weights)
 
@@ -594,14 +657,6 @@ class RaceEnv(gym.Env):
 def display_available() -> bool:
     """Whether a GUI window can open here: always on macOS and Windows, with ``DISPLAY`` set elsewhere."""
     return not sys.platform.startswith("linux") or bool(os.environ.get("DISPLAY"))
-
-
-def _check_number(name: str, value: Any, unit: str, positive: bool) -> None:
-    """Raise a ValueError naming ``name`` unless ``value`` is a finite real number (> 0 or >= 0)."""
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-    if not (ok and math.isfinite(value) and (value > 0 if positive else value >= 0)):
-        bound = "> 0" if positive else ">= 0"
-        raise ValueError(f"{name} must be a finite number {bound}{' ' + unit if unit else ''}, got {value!r}")
 
 
 @njit(cache=True, error_model="numpy")  # numpy's division semantics (x / 0 = inf), as the array version had

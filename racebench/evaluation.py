@@ -10,11 +10,13 @@ Protocol (versioned by :data:`SEED_PROTOCOL`):
   reason recorded (``crash_reason = "agent_error"``, ``error`` column); the sweep goes on.
 
 Every finished episode is stored as its own record (:mod:`racebench.records`), keyed to the exact policy
-(sha256 of its file, or a built-in's name and code version), the env version and the seed protocol, and
-written to a temporary file renamed into place. An output directory holds the records of **one** policy
+(sha256 of its file, or a built-in's name and code version), the env version and the seed protocol: a line
+appended (and synced) to the writing process's shard, merged into the folder's ``records.jsonl`` at the start
+and end of every run. An output directory holds the records of **one** policy
 on one env version: evaluating another policy into it is refused (:class:`MixedResultsError`) unless
-``force`` clears it. Running again resumes: valid finished records are kept and skipped, an invalid one is
-named, moved to ``invalid/`` and its episode re-run, a killed run loses at most the episodes in flight.
+``force`` clears it. Running again resumes: valid finished records are kept and skipped, an invalid line is
+named (file, line, reason), appended to ``invalid.jsonl`` and its episode re-run, a torn last line (a kill
+mid-write) is dropped with a warning, a killed run loses at most the episodes in flight.
 ``episodes.csv`` and ``summary.csv`` (n, successes, success rate with a 95 % Wilson interval, lap-time
 statistics) are rebuilt from the validated records after every run; tables and figures recompute their
 summaries from the records too and never read a ``summary.csv`` back.
@@ -48,15 +50,27 @@ from racebench.agents import PolicyIdentity, load_agent, policy_identity
 from racebench.ray_backend import BACKENDS, RayOptions, require_ray
 from racebench.ray_backend import run_evaluation as run_on_ray
 from racebench.records import (
+    INVALID_FILE,
+    LEGACY_DIR,
     RECORD_FIELDS,
     RECORD_FORMAT,
-    InvalidRecordError,
+    RECORDS_FILE,
+    SHARD_GLOB,
+    TRAJECTORIES_DIR,
+    TRAJECTORIES_FILE,
+    append_line,
     atomic_write,
+    compact_folder,
+    compact_trajectories,
     git_state,
+    has_records,
     host_info,
-    read_record,
+    name_of,
+    read_folder,
+    record_line,
     record_name,
     seal,
+    shard_path,
 )
 from racebench.registration import DENSITIES, ENV_VERSION, GATE_SHIFTS
 from racebench.rollout import BatchAgent, env_error_result, run_episode, run_lockstep
@@ -66,6 +80,10 @@ logger = logging.getLogger("racebench")
 
 SEED_PROTOCOL = 1
 EVAL_SEED_BASE = 1_000_000
+# Validation scene i (choosing a DAgger run's student, a campaign run's validation curve) has seed
+# VALIDATION_SEED_BASE + i: above the training seeds of a fresh run and below the evaluation seeds, so nothing
+# chosen or plotted on validation scenes has seen an evaluation scene.
+VALIDATION_SEED_BASE = 800_000
 TRACK_ORDER: tuple[str, ...] = ("S", "Circle", "J")  # the paper's column order
 SUITES: dict[str, list[str]] = {
     "main": [f"RaceObs-{t}-v0" for t in TRACK_ORDER],
@@ -74,7 +92,7 @@ SUITES: dict[str, list[str]] = {
 }
 SUITES["paper"] = SUITES["main"] + SUITES["density"] + SUITES["gates"]
 SEED_SET = "public"
-DEFAULT_BATCH = 64  # episodes flown in lockstep per process (learned agents); widths 16/32/64 compared in README
+DEFAULT_BATCH = 64  # episodes flown in lockstep per process (learned agents); widths 16/32/64: docs/evaluation.md
 EPISODE_COLUMNS: tuple[str, ...] = RECORD_FIELDS  # episodes.csv: every record field
 _ID = re.compile(r"^RaceObs-(?P<track>[^-]+)(?:-(?P<variant>.+))?-v0$")
 
@@ -107,7 +125,12 @@ def split_env_id(env_id: str) -> tuple[str, str]:
 @dataclass(frozen=True)
 class RecordWriter:
     """Writes the record (and trajectory) of each finished episode of one evaluation; picklable, so worker
-    processes write their own records as episodes end (a killed run loses only the episodes in flight)."""
+    processes write their own records as episodes end (a killed run loses only the episodes in flight).
+
+    Each process appends whole lines to its own shard (:func:`racebench.records.shard_path`), so no two processes
+    write into one file; the evaluator merges the shards into ``records.jsonl``
+    (:func:`~racebench.records.compact_folder`).
+    """
 
     out_dir: Path
     identity: PolicyIdentity
@@ -120,8 +143,8 @@ class RecordWriter:
         """File name of the record of ``(env_id, seed)``."""
         return record_name(self.identity.sha256, env_id, ENV_VERSION, SEED_PROTOCOL, self.seed_set, seed, self.renderer)
 
-    def write(self, env_id: str, seed: int, result: dict[str, Any], flown: dict | None) -> str:
-        """Seal and atomically write one episode's record; return its file name."""
+    def write(self, env_id: str, seed: int, result: dict[str, Any], flown: dict | None) -> dict[str, Any]:
+        """Seal one episode's record, append it to this process's shard (synced); return the record."""
         track, variant = split_env_id(env_id)
         commit, dirty = git_state()
         record = seal(
@@ -150,15 +173,16 @@ class RecordWriter:
         )
         name = self.name(env_id, seed)
         if flown is not None:
-            traj_dir = self.out_dir / "trajectories"
+            traj_dir = self.out_dir / TRAJECTORIES_DIR
             traj_dir.mkdir(parents=True, exist_ok=True)
             tmp = traj_dir / f".{name}.tmp.npz"
             scene = json.dumps(flown["scene"])
             np.savez_compressed(tmp, positions=flown["positions"], scene=scene, row=json.dumps(record))
             os.chmod(tmp, 0o644)
             os.replace(tmp, traj_dir / name.replace(".json", ".npz"))
-        atomic_write(self.out_dir / "records" / name, json.dumps(record, indent=1))
-        return name
+        # The trajectory first: a record on disk promises its trajectory (a kill in between re-flies the episode).
+        append_line(shard_path(self.out_dir), record_line(record))
+        return record
 
 
 # Worker-process state: one agent, built once per process, and its settings.
@@ -166,13 +190,18 @@ _WORKER: dict[str, Any] = {}
 
 
 def _worker_init(
-    agent_spec: str, renderer: str, trust_code: bool, threads: int, agent_kwargs: dict[str, Any] | None = None
+    agent_spec: str,
+    renderer: str,
+    trust_code: bool,
+    threads: int,
+    agent_kwargs: dict[str, Any] | None = None,
+    vecnormalize: str | bool | None = None,
 ) -> None:
     _close_pool()
     if not _WORKER.get("atexit"):
         atexit.register(_close_pool)  # a worker process's envs, at its exit
         _WORKER["atexit"] = True
-    agent = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs)
+    agent = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs, vecnormalize=vecnormalize)
     _WORKER.update(agent=agent, renderer=renderer, pool={})
     torch = sys.modules.get("torch")  # imported by learned agents only; built-ins need not pay for it
     if torch is not None:
@@ -193,14 +222,14 @@ def _fly(
     width: int,
     save_trajectories: bool,
     on_written: Callable[[], None] | None = None,
-) -> list[str]:
-    """Fly ``jobs`` with this process's agent, writing each record as its episode ends; return the names.
+) -> list[dict[str, Any]]:
+    """Fly ``jobs`` with this process's agent, writing each record as its episode ends; return the records.
 
     A :class:`~racebench.rollout.BatchAgent` flies ``width`` episodes in lockstep; any other agent one
     episode at a time. ``on_written`` is called after each record (progress).
     """
     agent = _WORKER["agent"]
-    written: list[str] = []
+    written: list[dict[str, Any]] = []
 
     def make_env(env_id: str) -> gym.Env:
         return gym.make(env_id, obs_mode=agent.obs_mode, renderer=_WORKER["renderer"])
@@ -297,6 +326,9 @@ class Evaluator:
             ``salt`` or, when not given, the environment variable ``RACEBENCH_PRIVATE_SALT``
             (:mod:`racebench.leaderboard.seeds`); the records store the salt's hash, never the salt.
         agent_kwargs: constructor keyword arguments of a ``module:Class`` agent (part of its policy identity).
+        vecnormalize: an SB3 checkpoint's ``VecNormalize`` statistics: ``None`` those matched to it by name (an
+            error if that is ambiguous), a path, or ``False`` for none (:func:`racebench.agents.resolve_vecnormalize`;
+            part of its policy identity).
         backend: ``"local"`` (worker processes on this machine) or ``"ray"`` (episodes as Ray tasks,
             :mod:`racebench.ray_backend`; same records, so resume, summaries and tables are unchanged).
         ray_options: :class:`~racebench.ray_backend.RayOptions` of the Ray backend (cluster address, CPUs
@@ -319,6 +351,7 @@ class Evaluator:
         seed_set: str = SEED_SET,
         salt: str | None = None,
         agent_kwargs: dict[str, Any] | None = None,
+        vecnormalize: str | Path | bool | None = None,
         backend: str = "local",
         ray_options: RayOptions | None = None,
     ) -> None:
@@ -359,8 +392,10 @@ class Evaluator:
         self.width = max(1, min(batch, len(self.env_ids) * len(self.seeds)))
         self.salt_sha256 = salt_sha256(salt) if seed_set == "private" else None
         self.agent_kwargs = agent_kwargs
-        probe = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs)  # fail fast, here
-        self.identity = policy_identity(agent_spec, agent_kwargs)
+        # An absolute path: worker processes and Ray tasks load the same file.
+        self.vecnormalize = str(Path(vecnormalize).resolve()) if isinstance(vecnormalize, (str, Path)) else vecnormalize
+        probe = load_agent(agent_spec, trust_code, agent_kwargs, self.vecnormalize)  # fail fast, here
+        self.identity = policy_identity(agent_spec, agent_kwargs, self.vecnormalize)
         if getattr(probe, "sha256", self.identity.sha256) != self.identity.sha256:
             raise ValueError(f"{agent_spec!r} changed while it was being loaded")
         self.agent_name = agent_name or probe.name
@@ -368,7 +403,6 @@ class Evaluator:
         self.privileged = self.identity.privileged
         default = default_out_dir(self.agent_name, self.identity, seed_set)
         self.out_dir = Path(out_dir) if out_dir is not None else default
-        self.records_dir = self.out_dir / "records"
         self.writer = RecordWriter(self.out_dir, self.identity, self.agent_name, renderer, seed_set, self.salt_sha256)
         if force:
             self._clear()
@@ -376,20 +410,21 @@ class Evaluator:
 
     # ----------------------------------------------------------------- records
     def _clear(self) -> None:
-        for sub in ("records", "trajectories", "invalid"):
+        for sub in (LEGACY_DIR, TRAJECTORIES_DIR, "invalid"):
             shutil.rmtree(self.out_dir / sub, ignore_errors=True)
-        for name in ("episodes.csv", "summary.csv"):
+        for path in self.out_dir.glob(SHARD_GLOB):
+            path.unlink()
+        for name in (RECORDS_FILE, TRAJECTORIES_FILE, INVALID_FILE, "episodes.csv", "summary.csv"):
             (self.out_dir / name).unlink(missing_ok=True)
 
     def _scan(self) -> set[str]:
-        """Validate what ``out_dir`` holds: invalid records are set aside, another policy's are refused."""
-        done: set[str] = set()
-        for path in sorted(self.records_dir.glob("*.json")):
-            try:
-                record = read_record(path)
-            except InvalidRecordError as exc:
-                self._set_aside(path, str(exc))
-                continue
+        """Validate what ``out_dir`` holds: another policy's records are refused; else the folder is compacted
+        (shards and legacy files merged into ``records.jsonl``, invalid lines set aside into ``invalid.jsonl``,
+        a torn last line dropped: their episodes are pending again)."""
+        if not has_records(self.out_dir):
+            return set()
+        found = read_folder(self.out_dir)
+        for record in found.records.values():
             theirs = (record["policy_sha256"], record["env_version"], record["renderer"])
             if theirs != (self.identity.sha256, ENV_VERSION, self.renderer):
                 raise MixedResultsError(
@@ -411,15 +446,13 @@ class Evaluator:
                     f"{self.out_dir} labels this policy {record['agent']!r}, not {self.agent_name!r}: "
                     f"use --name {record['agent']}, another --out, or --force to discard them"
                 )
-            done.add(path.name)
-        return done
+        return set(self._compact().records)
 
-    def _set_aside(self, path: Path, reason: str) -> None:
-        aside = self.out_dir / "invalid"
-        aside.mkdir(parents=True, exist_ok=True)
-        os.replace(path, aside / path.name)
-        atomic_write(aside / f"{path.name}.reason.txt", reason + "\n")
-        logger.warning("racebench: invalid record set aside, its episode will be re-run: %s", reason)
+    def _compact(self) -> Any:
+        """Merge the folder's records (and trajectories) into one file each; return the records found."""
+        found = compact_folder(self.out_dir)
+        compact_trajectories(self.out_dir, keep=set(found.records))
+        return found
 
     def pending(self) -> list[tuple[str, int]]:
         """(env id, seed) pairs of this evaluation without a valid finished record."""
@@ -440,12 +473,16 @@ class Evaluator:
         size = max(1, min(2 * self.width, -(-len(todo) // self.workers)))
         tasks = [todo[i : i + size] for i in range(0, len(todo), size)]
         if self.backend == "ray":
-            self.done.update(run_on_ray(self, todo, bar.update))
+            self.done.update(name_of(r) for r in run_on_ray(self, todo, bar.update))
         elif self.workers == 1 or len(tasks) <= 1:
             with SingleTorchThread():
-                _worker_init(self.agent_spec, self.renderer, self.trust_code, torch_threads(), self.agent_kwargs)
+                _worker_init(
+                    self.agent_spec, self.renderer, self.trust_code, torch_threads(), self.agent_kwargs,
+                    self.vecnormalize,
+                )  # fmt: skip
                 try:  # one lockstep over every episode: its slots idle only at the very end, not after each task
-                    self.done.update(_fly(todo, self.writer, self.width, self.save_trajectories, lambda: bar.update(1)))
+                    flown = _fly(todo, self.writer, self.width, self.save_trajectories, lambda: bar.update(1))
+                    self.done.update(name_of(r) for r in flown)
                 finally:
                     _close_pool()
         else:
@@ -455,17 +492,18 @@ class Evaluator:
                 self.workers,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=_worker_init,
-                initargs=(self.agent_spec, self.renderer, self.trust_code, 1, self.agent_kwargs),
+                initargs=(self.agent_spec, self.renderer, self.trust_code, 1, self.agent_kwargs, self.vecnormalize),
             ) as pool:
                 futures = {
                     pool.submit(_fly, task, self.writer, self.width, self.save_trajectories): len(task)
                     for task in tasks
                 }
                 for future in as_completed(futures):
-                    self.done.update(future.result())
+                    self.done.update(name_of(r) for r in future.result())
                     bar.update(futures[future])
         bar.close()
         self.elapsed = time.perf_counter() - started
+        self.done = set(self._compact().records)  # one records.jsonl (and trajectories.npz) again
         episodes = write_tables(self.out_dir)
         asked = {(e, s) for e in self.env_ids for s in self.seeds}
         self.selected = episodes[[(e, s) in asked for e, s in zip(episodes["env_id"], episodes["seed"], strict=True)]]
@@ -473,17 +511,16 @@ class Evaluator:
 
 
 def load_records(out_dir: str | Path) -> pd.DataFrame:
-    """Every valid record under ``out_dir/records`` as a DataFrame with :data:`EPISODE_COLUMNS`.
+    """Every valid record of ``out_dir`` (``records.jsonl``, shards of a running or killed evaluation, legacy
+    ``records/*.json``) as a DataFrame with :data:`EPISODE_COLUMNS`.
 
-    An invalid record is named in a warning and left out (never counted); :class:`Evaluator` sets such
-    records aside and re-runs their episodes.
+    An invalid line is named (file, line, reason) in a warning and left out (never counted); :class:`Evaluator`
+    sets such lines aside and re-runs their episodes.
     """
-    rows = []
-    for path in sorted((Path(out_dir) / "records").glob("*.json")):
-        try:
-            rows.append(read_record(path))
-        except InvalidRecordError as exc:
-            logger.warning("racebench: invalid record left out: %s", exc)
+    found = read_folder(out_dir)
+    for problem in found.problems:
+        logger.warning("racebench: invalid record left out: %s", problem.error())
+    rows = found.sorted_records()
     frame = pd.DataFrame(rows, columns=list(EPISODE_COLUMNS))
     return frame.sort_values(["agent", "env_id", "seed"], kind="stable").reset_index(drop=True)
 
@@ -553,8 +590,8 @@ def load_result_dir(path: str | Path) -> tuple[Path, pd.DataFrame]:
     path = Path(path)
     if path.is_file() and path.name in ("summary.csv", "episodes.csv"):
         path = path.parent
-    if not (path / "records").is_dir():
-        raise FileNotFoundError(f"no evaluation records at {str(path)!r} (expected {str(path / 'records')!r})")
+    if not has_records(path):
+        raise FileNotFoundError(f"no evaluation records at {str(path)!r} (expected {str(path / RECORDS_FILE)!r})")
     episodes = load_records(path)
     if episodes.empty:
         raise ValueError(f"no valid evaluation records in {str(path)!r}")

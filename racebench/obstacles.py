@@ -26,8 +26,30 @@ from scipy import ndimage
 
 from racebench.scene import Obstacle, Scene, arena_bounds
 from racebench.track import Gate, Track
+from racebench.validation import check_int, check_real, interval
 
 KINDS: tuple[str, ...] = ("cylinder", "box", "mixed")
+#: Most obstacles per region: 4x the densest registered id (Density5) and the curriculum's 4 (the densest any config
+#: or test uses is 6). At 20 the built-in tracks' regions (about 20 m^2 each outside the gate and start clearances)
+#: are nearly full: box layouts are already often redrawn there.
+MAX_DENSITY = 20
+#: Most obstacles in one scene (``density`` x the track's obstacle regions): bounds a layout's cost before anything
+#: is allocated (its candidate-pair matrices hold ``(4 x this)^2`` entries, ~20 MB each).
+MAX_SCENE_OBSTACLES = 400
+#: Most layouts drawn per scene before giving up (the default 200 suffices at every valid setting of the built-in
+#: tracks); with MAX_SCENE_OBSTACLES it bounds a scene's time, as the former bounds its memory.
+MAX_ATTEMPTS = 1000
+#: Largest horizontal gate shift (m, per axis; the paper uses up to 1.0): the arena reaches 3 m past the outermost
+#: gate centres, so a shifted gate's frame (0.64 m half-width) stays at least 0.36 m inside its walls.
+MAX_GATE_SHIFT = 2.0
+#: Largest vertical gate shift (m; the paper's is 0.3, the GateShift1.0 ids use 1.0): the arena's ceiling is 2 m
+#: above the highest gate frame, so a raised frame keeps 1 m to fly over it, above the corridor check's 0.6 m.
+MAX_GATE_SHIFT_Z = 1.0
+#: Most cells of the corridor grid over the arena (16.8 M: a 67 MB label array); the built-in tracks at the
+#: default 0.1 m resolution need 0.6-0.9 M.
+MAX_GRID_CELLS = 1 << 24
+#: Default margin (m) added to the drone's collision radius for the guaranteed corridor.
+CORRIDOR_MARGIN = 0.08
 
 _SIX = ndimage.generate_binary_structure(3, 1)  # face-adjacent cells only: the soundness argument needs it
 _APPROACH = 0.25  # gate passages run this far before and after the gate plane (m)
@@ -454,7 +476,7 @@ class ObstacleGenerator:
         clearance: float = 0.5,
         gate_shift_z: float | None = None,
         drone_radius: float = 0.12,
-        corridor_margin: float = 0.08,
+        corridor_margin: float = CORRIDOR_MARGIN,
         pole_height: float = 3.0,
         radius_choices: tuple[float, ...] = (0.05, 0.075, 0.1, 0.125, 0.15),
         box_half_choices: tuple[float, ...] = (0.1, 0.15, 0.2, 0.25),
@@ -464,32 +486,51 @@ class ObstacleGenerator:
         """Validate the settings; see the class docstring. Raises ``ValueError`` naming a bad parameter."""
         if not isinstance(track, Track):
             raise ValueError(f"track must be a racebench Track, got {type(track).__name__}")
-        for name, value in (("density", density), ("max_attempts", max_attempts)):
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-                raise ValueError(f"{name} must be an int, got {value!r}")
-        if density < 0:
-            raise ValueError(f"density must be >= 0, got {density}")
-        if max_attempts < 1:
-            raise ValueError(f"max_attempts must be >= 1, got {max_attempts}")
+        # Every bound is checked before anything is allocated: a layout's memory and time follow from them.
+        check_int("density", density, 0, MAX_DENSITY)
+        regions = len(track.obstacle_regions)
+        if density * regions > MAX_SCENE_OBSTACLES:
+            most = MAX_SCENE_OBSTACLES // regions
+            raise ValueError(
+                f"density must be at most {most} on track {track.name!r} ({regions} obstacle regions, at most "
+                f"{MAX_SCENE_OBSTACLES} obstacles per scene), got {density!r}"
+            )
+        check_int("max_attempts", max_attempts, 1, MAX_ATTEMPTS)
         if kind not in KINDS:
             raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+        check_real("gate_shift", gate_shift, 0.0, MAX_GATE_SHIFT, unit="m")
+        if gate_shift_z is None and gate_shift > MAX_GATE_SHIFT_Z:
+            raise ValueError(
+                f"gate_shift_z must be in {interval(0.0, MAX_GATE_SHIFT_Z, unit='m')} (it defaults to gate_shift: "
+                f"pass gate_shift_z), got {gate_shift!r}"
+            )
+        if gate_shift_z is not None:
+            check_real("gate_shift_z", gate_shift_z, 0.0, MAX_GATE_SHIFT_Z, unit="m")
         for name, value, positive in (
-            ("gate_shift", gate_shift, False),
-            ("gate_shift_z", gate_shift if gate_shift_z is None else gate_shift_z, False),
             ("clearance", clearance, False),
             ("drone_radius", drone_radius, True),
             ("corridor_margin", corridor_margin, False),
             ("pole_height", pole_height, True),
             ("grid_resolution", grid_resolution, True),
         ):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"{name} must be a finite number, got {value!r}")
-            if value < 0 or (positive and value == 0):
-                raise ValueError(f"{name} must be {'> 0' if positive else '>= 0'}, got {value!r}")
+            check_real(name, value, 0.0, math.inf, unit="m", low_open=positive)
         for name, choices in (("radius_choices", radius_choices), ("box_half_choices", box_half_choices)):
             values = np.asarray(choices, dtype=float) if isinstance(choices, (tuple, list)) else np.array([])
             if values.ndim != 1 or len(values) == 0 or not np.all(np.isfinite(values)) or np.any(values <= 0):
                 raise ValueError(f"{name} must be a non-empty tuple of positive numbers, got {choices!r}")
+        arena_low, arena_high = arena_bounds(track)
+        cells = math.prod(max(math.floor(float(v) / grid_resolution), 0) for v in arena_high - arena_low)
+        if cells > MAX_GRID_CELLS:
+            raise ValueError(
+                f"grid_resolution must keep the corridor grid of track {track.name!r} within {MAX_GRID_CELLS} cells, "
+                f"got {grid_resolution!r} m ({cells} cells)"
+            )
+        opening = min(g.inner for g in track.gates) / 2.0
+        if drone_radius + corridor_margin >= opening:  # no corridor could pass a gate: every layout would fail
+            raise ValueError(
+                f"drone_radius must be < {opening - corridor_margin:g} m (plus corridor_margin {corridor_margin:g} m, "
+                f"within half the {2 * opening:g} m gate opening of track {track.name!r}), got {drone_radius!r}"
+            )
         self.track = track
         self.density = int(density)
         self.kind = kind
@@ -503,9 +544,19 @@ class ObstacleGenerator:
         self.box_half_choices = tuple(float(v) for v in box_half_choices)
         self.grid_resolution = float(grid_resolution)
         self.max_attempts = int(max_attempts)
-        self.arena_low, self.arena_high = arena_bounds(track)
+        self.arena_low, self.arena_high = arena_low, arena_high
         self.rejections: Counter[str] = Counter()  # why layouts were redrawn, summed over all calls
         self._start_clear_of_track_gates: bool | None = None
+        # A start region no gate shift can clear of the frames would have every layout rejected at reset: refuse it
+        # now. Bars move with their gate, by at most hypot(sqrt(2) gate_shift, gate_shift_z).
+        reach = math.hypot(math.sqrt(2.0) * self.gate_shift, self.gate_shift_z)
+        bars = Scene(track, track.gates, (), track.start.center, 0.0, self.arena_low, self.arena_high)
+        room = float(bars.distance(track.start.center)) + reach - self.corridor_radius
+        if float(np.linalg.norm(track.start.spread)) > room:
+            raise ValueError(
+                f"start_spread must keep the start region {self.corridor_radius:g} m from the gate frames of track "
+                f"{track.name!r} (a half-diagonal of at most {room:.3g} m), got {track.start.spread.tolist()}"
+            )
 
     @property
     def corridor_radius(self) -> float:

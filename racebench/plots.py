@@ -6,7 +6,9 @@ shift, the 3D track plot with flown trajectories (the paper's Fig. 4), training 
 from __future__ import annotations
 
 import json
+import logging
 import os
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -22,14 +24,20 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 from matplotlib.transforms import Bbox  # noqa: E402
 
 from racebench.evaluation import TRACK_ORDER  # noqa: E402
+from racebench.records import read_trajectories  # noqa: E402
 from racebench.registration import CURRICULUM, DENSITIES, GATE_SHIFTS  # noqa: E402
 from racebench.tables import TRACK_NAMES  # noqa: E402
+from racebench.yamlfile import read_yaml  # noqa: E402
 
 #: File formats of the figures (matplotlib picks the writer from the suffix) and the default resolution of PNGs.
 FIGURE_FORMATS: tuple[str, ...] = ("png", "pdf", "svg")
 DEFAULT_DPI = 300
 NOT_EVALUATED = "n/e"  # the label of a bar slot whose cell has no results
 _LABEL_BOX = {"facecolor": "white", "edgecolor": "none", "pad": 0.6}  # a label stays legible over an error bar
+#: Colours of the agents' flights in the track figure when it shows several agents (none is the gates' orange,
+#: the obstacles' blue or the start's green).
+_AGENT_COLOURS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan", "tab:gray", "black")
+logger = logging.getLogger("racebench.plots")
 
 
 def _label(agent: str, privileged: bool) -> str:
@@ -112,6 +120,10 @@ def plot_success_vs(summary: pd.DataFrame, factor: str, path: str | Path, dpi: i
     data = summary[summary["variant"].isin(variants)]
     if data.empty:
         raise ValueError(f"no results on the {factor} variants to plot")
+    absent = sorted(set(summary["agent"].astype(str)) - set(data["agent"].astype(str)))
+    if absent:  # said, so that a missing curve is not read as a figure of every agent given
+        what = {"density": "obstacle density", "gates": "gate shift", "levels": "curriculum level"}[factor]
+        logger.warning(f"{Path(path).name}: no {what} results of {', '.join(absent)}; left out")
     fig, axes = plt.subplots(1, len(TRACK_ORDER), figsize=(10, 3.2), sharey=True)
     for ax, track in zip(axes, TRACK_ORDER, strict=True):
         for agent, privileged in _agents(data):
@@ -165,7 +177,7 @@ def _draw_scene(ax, scene: dict) -> None:
 
 
 def plot_track_3d(
-    out_dir: str | Path,
+    out_dir: str | Path | Iterable[str | Path],
     env_id: str,
     path: str | Path,
     agent: str | None = None,
@@ -174,31 +186,49 @@ def plot_track_3d(
 ) -> Path:
     """The paper's Fig. 4: gates, obstacles and flown trajectories of one env id (needs saved trajectories).
 
-    One scene (the episode ``seed``, default the first saved one) with every saved trajectory flown in it
-    (each agent's, or only ``agent``'s); successful flights solid, failures dotted with an x at the crash.
+    ``out_dir``: one result directory or several (each agent's evaluation). One scene (the episode ``seed``,
+    default the smallest saved one) with every saved trajectory flown in it (each agent's, or only ``agent``'s);
+    successful flights solid, failures dotted with an x at the crash. Several agents get a colour each, labelled
+    in the legend; a given directory without a trajectory in that scene is named in a warning.
     """
-    files = sorted((Path(out_dir) / "trajectories").glob("*.npz"))
-    runs = []
-    for f in files:
-        with np.load(f) as data:
-            row = json.loads(str(data["row"]))
+    folders = [Path(out_dir)] if isinstance(out_dir, str | Path) else [Path(d) for d in out_dir]
+    runs = []  # (row, positions, scene, folder)
+    for folder in folders:
+        for row, positions, scene in read_trajectories(folder):  # in record-name order, as the files once were
             if row["env_id"] == env_id and (agent is None or row["agent"] == agent):
-                runs.append((row, data["positions"], json.loads(str(data["scene"]))))
+                runs.append((row, positions, scene, folder))
+    where = ", ".join(repr(str(folder)) for folder in folders)
     if not runs:
-        raise ValueError(f"no trajectories of {env_id!r} in {str(out_dir)!r} (evaluate with --save-trajectories)")
-    seed = min(r["seed"] for r, _, _ in runs) if seed is None else seed
+        raise ValueError(f"no trajectories of {env_id!r} in {where} (evaluate with --save-trajectories)")
+    seed = min(r["seed"] for r, *_ in runs) if seed is None else seed
     runs = [run for run in runs if run[0]["seed"] == seed]  # one scene: trajectories of other seeds flew others
     if not runs:
-        raise ValueError(f"no trajectory of {env_id!r} with seed {seed} in {str(out_dir)!r}")
+        raise ValueError(f"no trajectory of {env_id!r} with seed {seed} in {where}")
+    scene = runs[0][2]
+    if any(run[2] != scene for run in runs):  # e.g. records of another env version: not one figure
+        raise ValueError(f"the trajectories of {env_id!r} seed {seed} in {where} flew different scenes")
+    unused = [str(folder) for folder in folders if not any(run[3] == folder for run in runs)]
+    if unused:
+        logger.warning(f"no trajectory of {env_id} seed {seed} in {', '.join(unused)}: not in the track figure")
+    # One label per policy: its agent name, with its folder's name where two policies share one agent name.
+    policies = dict.fromkeys((r["agent"], r.get("policy_sha256"), folder) for r, _, _, folder in runs)
+    labels: dict[tuple[str, str | None], str] = {}
+    for name, digest, folder in policies:
+        shared = len({h for a, h, _ in policies if a == name}) > 1
+        labels.setdefault((name, digest), f"{name} ({folder.name})" if shared else name)
+    several = len(set(labels.values())) > 1
+    colours = {label: _AGENT_COLOURS[i % len(_AGENT_COLOURS)] for i, label in enumerate(dict.fromkeys(labels.values()))}
     fig = plt.figure(figsize=(7.5, 4.6))
     ax = fig.add_subplot(projection="3d")
-    _draw_scene(ax, runs[0][2])
-    for row, positions, _ in runs:
+    _draw_scene(ax, scene)
+    for row, positions, _, _ in runs:
         ok = bool(row["success"])
-        ax.plot(*positions.T, "-" if ok else ":", color="tab:green" if ok else "tab:red", linewidth=1.2, alpha=0.8)
+        label = labels[(row["agent"], row.get("policy_sha256"))]
+        colour = colours[label] if several else "tab:green" if ok else "tab:red"
+        ax.plot(*positions.T, "-" if ok else ":", color=colour, linewidth=1.2, alpha=0.8)
         if not ok:
-            ax.scatter(*positions[-1], marker="x", color="tab:red", s=25)
-    all_points = np.concatenate([p for _, p, _ in runs] + [np.array([g["center"] for g in runs[0][2]["gates"]])])
+            ax.scatter(*positions[-1], marker="x", color=colour, s=25)
+    all_points = np.concatenate([p for _, p, _, _ in runs] + [np.array([g["center"] for g in scene["gates"]])])
     low, high = all_points.min(axis=0) - 1.0, all_points.max(axis=0) + 1.0
     low[2], high[2] = 0.0, max(high[2], 3.0)
     ax.set_xlim(low[0], high[0])
@@ -214,17 +244,26 @@ def plot_track_3d(
     ax.set_xlabel("x [m]", labelpad=10)
     ax.set_ylabel("y [m]", labelpad=6)
     ax.set_zlabel("z [m]", labelpad=4)
-    k = sum(bool(r["success"]) for r, _, _ in runs)
-    who = agent or ", ".join(sorted({r["agent"] for r, _, _ in runs}))
+    k = sum(bool(r["success"]) for r, *_ in runs)
+    who = agent or ", ".join(sorted(set(labels.values())))
     ax.set_title(f"{env_id}, seed {seed}: {who} ({k}/{len(runs)} successful)", fontsize=9)
     handles = [
         Line2D([], [], color="tab:orange", linewidth=2, label="gate"),
         Patch(facecolor="tab:blue", alpha=0.35, label="obstacle"),
         Line2D([], [], color="tab:green", marker="o", linestyle="", label="start"),
-        Line2D([], [], color="tab:green", label="successful flight"),
     ]
-    if k < len(runs):
-        handles.append(Line2D([], [], color="tab:red", linestyle=":", marker="x", label="failed flight (x: end)"))
+    if several:  # a colour per agent; the line style tells success from failure
+        for label, colour in colours.items():
+            mine = [r for r, *_ in runs if labels[(r["agent"], r.get("policy_sha256"))] == label]
+            won = sum(bool(r["success"]) for r in mine)
+            handles.append(Line2D([], [], color=colour, label=f"{label} ({won}/{len(mine)} successful)"))
+        handles.append(Line2D([], [], color="0.3", label="successful flight"))
+        if k < len(runs):
+            handles.append(Line2D([], [], color="0.3", linestyle=":", marker="x", label="failed flight (x: end)"))
+    else:
+        handles.append(Line2D([], [], color="tab:green", label="successful flight"))
+        if k < len(runs):
+            handles.append(Line2D([], [], color="tab:red", linestyle=":", marker="x", label="failed flight (x: end)"))
     legend = ax.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(0.0, 0.95), frameon=False)
     # Crop to what is drawn: a 3D axes' own box (which "tight" keeps) is mostly blank below the track.
     fig.canvas.draw()
@@ -296,7 +335,6 @@ def read_progress(csv_path: str | Path) -> pd.DataFrame:
 def _load_runs(runs: list[str | Path]) -> list[tuple[str, pd.DataFrame]]:
     """``(label, progress)`` per run directory or ``progress.csv``; the label is the run's config name
     (``config.yaml``, else ``summary.json``'s config) or its directory's name."""
-    import yaml
 
     loaded = []
     for run in runs:
@@ -307,7 +345,8 @@ def _load_runs(runs: list[str | Path]) -> list[tuple[str, pd.DataFrame]]:
         config, summary = csv_path.parent / "config.yaml", csv_path.parent / "summary.json"
         label = csv_path.parent.name
         if config.is_file():
-            label = yaml.safe_load(config.read_text()).get("name") or label
+            saved = read_yaml(config)
+            label = (saved.get("name") if isinstance(saved, dict) else None) or label
         elif summary.is_file():
             named = json.loads(summary.read_text()).get("config", {})  # a DAgger run's dict, a PPO run's name
             label = named.get("name", label) if isinstance(named, dict) else named if isinstance(named, str) else label

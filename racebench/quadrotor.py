@@ -19,6 +19,30 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from racebench.validation import check_real, check_triple, interval
+
+#: Allowed range of each :class:`QuadrotorParams` field: ``(low, high, unit, low end open)``; for the 3-vectors the
+#: range of each component. Wide enough for micro (~0.03 kg) to heavy (~5 kg) racing airframes around the paper's
+#: 0.58 kg one; narrow enough that every value gives a finite, controllable simulation.
+PARAM_RANGES: dict[str, tuple[float, float, str, bool]] = {
+    "mass": (0.01, 10.0, "kg", False),
+    "inertia": (1e-7, 10.0, "kg m^2", False),  # > 0: the rate loop's torque is J K (w_cmd - w)
+    "max_thrust": (0.0, 1e4, "N", True),  # and thrust-to-weight within (1, 20], checked with the mass
+    "arm_length": (0.01, 1.0, "m", False),
+    "torque_coefficient": (1e-4, 0.1, "m", False),  # > 0: the X-layout allocation must be invertible
+    "motor_time_constant": (0.0, 0.5, "s", False),  # 0: instant motors; slower ones cannot follow the rate loop
+    "max_body_rate": (0.0, 35.0, "rad/s", True),  # > 0: body rates are observed divided by it; 35 ~ 2000 deg/s
+    "rate_gain": (0.0, 50.0, "1/s", True),  # K dt <= 0.5 at the lowest physics rate (100 Hz)
+    "drag_coefficients": (0.0, 10.0, "N/(m/s)^2", False),  # at 10 the default airframe's top speed is ~1.1 m/s
+    "collision_radius": (0.0, 0.5, "m", True),  # and >= arm_length; a gate opening is 1 m wide
+    "gravity": (1.0, 25.0, "m/s^2", False),  # from the Moon (1.6) to Jupiter (24.8)
+}
+_TRIPLES = ("inertia", "max_body_rate", "rate_gain", "drag_coefficients")
+#: Thrust-to-weight ratio ``max_thrust / (mass g)``: above 1 or the drone cannot hover (the paper's airframe: 2.46);
+#: at most 20, beyond the ~10-15 of the most powerful racing quadrotors.
+MIN_THRUST_TO_WEIGHT = 1.0
+MAX_THRUST_TO_WEIGHT = 20.0
+
 
 @dataclass(frozen=True)
 class QuadrotorParams:
@@ -51,17 +75,25 @@ class QuadrotorParams:
     gravity: float = 9.81
 
     def __post_init__(self) -> None:
-        for name in ("mass", "max_thrust", "arm_length", "torque_coefficient", "collision_radius", "gravity"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"QuadrotorParams.{name} must be > 0, got {getattr(self, name)!r}")
-        if self.motor_time_constant < 0:
-            raise ValueError(f"QuadrotorParams.motor_time_constant must be >= 0, got {self.motor_time_constant!r}")
-        for name in ("inertia", "max_body_rate", "rate_gain", "drag_coefficients"):
-            value = getattr(self, name)
-            if len(value) != 3 or any(v < 0 for v in value):
-                raise ValueError(f"QuadrotorParams.{name} must be 3 non-negative numbers, got {value!r}")
-        if self.max_thrust <= self.mass * self.gravity:
-            raise ValueError("QuadrotorParams.max_thrust must exceed the weight, or the drone cannot hover")
+        # Ranges (see PARAM_RANGES) bound every field finite and physical: an inf or a zero here gives NaN states.
+        for name, (low, high, unit, low_open) in PARAM_RANGES.items():
+            check = check_triple if name in _TRIPLES else check_real
+            check(f"QuadrotorParams.{name}", getattr(self, name), low, high, unit=unit, low_open=low_open)
+        jx, jy, jz = self.inertia
+        if jx + jy < jz or jy + jz < jx or jz + jx < jy:  # every rigid body's principal moments satisfy it
+            raise ValueError(f"QuadrotorParams.inertia must satisfy the triangle inequality, got {self.inertia!r}")
+        if self.collision_radius < self.arm_length:
+            raise ValueError(
+                f"QuadrotorParams.collision_radius must be >= arm_length ({self.arm_length} m: the sphere holds the "
+                f"motors), got {self.collision_radius!r}"
+            )
+        weight = self.mass * self.gravity
+        lo, hi = MIN_THRUST_TO_WEIGHT * weight, MAX_THRUST_TO_WEIGHT * weight
+        if not lo < self.max_thrust <= hi:
+            raise ValueError(
+                f"QuadrotorParams.max_thrust must be in {interval(lo, hi, low_open=True, unit='N')} (thrust-to-weight "
+                f"in {interval(MIN_THRUST_TO_WEIGHT, MAX_THRUST_TO_WEIGHT, low_open=True)}), got {self.max_thrust!r}"
+            )
 
     @property
     def hover_action(self) -> float:

@@ -6,24 +6,25 @@ the local multiprocessing backend never pays for it.
 An evaluation on Ray is the local evaluation cut into tasks of a few episodes. Each task runs
 :func:`racebench.evaluation._fly` in a Ray worker process with the same :class:`~racebench.evaluation.RecordWriter`
 the local workers use, so every record has the same name and contents as a local run's, and resume,
-summaries and tables do not know which backend wrote them. A task skips the episodes whose valid record is
-already on disk, so a task retried after its worker or node died (Ray's ``max_retries``) re-flies only the
-episodes that had not finished; a record is written once per episode slot (renamed into place), so none is
-duplicated. A task also returns the bytes of the records it wrote: where a worker's node does not share the
-output folder with the driver, the driver writes them (records only; trajectories need a shared folder).
+summaries and tables do not know which backend wrote them. Each Ray worker process appends to a shard of its
+own (``records-<pid>-<token>.jsonl``), never to a file another process writes. A task skips the episodes whose
+valid record is already on disk, so a task retried after its worker or node died (Ray's ``max_retries``)
+re-flies only the episodes that had not finished. A task also returns the records it wrote, and the driver
+appends them to its own shard: where a worker's node does not share the output folder with the driver, that is
+the driver's copy (records only; trajectories need a shared folder); where it does, the copy is the same line,
+skipped on read and dropped when the evaluator merges the shards into ``records.jsonl``.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from racebench.records import InvalidRecordError, atomic_write, read_record, validate_record
+from racebench.records import append_line, read_folder, record_line, shard_path, validate_record
 
 INSTALL_HINT = "pip install -e '.[ray]'"
 BACKENDS: tuple[str, ...] = ("local", "ray")
@@ -126,33 +127,33 @@ def _fly_task(
     width: int,
     save_trajectories: bool,
     agent_kwargs: dict[str, Any] | None = None,
-) -> list[tuple[str, bytes]]:
-    """Body of one Ray evaluation task: fly the jobs without a valid record; return (name, record bytes) of all."""
+    vecnormalize: str | bool | None = None,
+) -> list[dict[str, Any]]:
+    """Body of one Ray evaluation task: fly the jobs without a valid record; return the records of all."""
     from racebench.evaluation import _WORKER, _fly, _worker_init, torch_threads
 
-    records = writer.out_dir / "records"
-    todo = []
-    for env_id, seed in jobs:
-        try:  # finished before this task's worker died: a retry keeps it
-            read_record(records / writer.name(env_id, seed))
-        except InvalidRecordError:
-            todo.append((env_id, seed))
+    # Finished before this task's worker died: a retry keeps it (read only if any record is on disk).
+    on_disk = read_folder(writer.out_dir).records
+    held = {writer.name(e, s): on_disk[writer.name(e, s)] for e, s in jobs if writer.name(e, s) in on_disk}
+    todo = [(e, s) for e, s in jobs if writer.name(e, s) not in held]
     key = (agent_spec, sha256, renderer, trust_code)  # sha256 covers the constructor arguments
     if todo and _WORKER.get("key") != key:  # a Ray worker process runs many tasks: build the agent once
-        _worker_init(agent_spec, renderer, trust_code, torch_threads(), agent_kwargs)
+        _worker_init(agent_spec, renderer, trust_code, torch_threads(), agent_kwargs, vecnormalize)
         if getattr(_WORKER["agent"], "sha256", sha256) != sha256:
             raise ValueError(f"{agent_spec!r} on this node is not the policy the driver evaluates (sha256 differs)")
         _WORKER["key"] = key
     if todo:
-        _fly(todo, writer, width, save_trajectories)
-    return [(writer.name(e, s), (records / writer.name(e, s)).read_bytes()) for e, s in jobs]
+        held.update((writer.name(r["env_id"], r["seed"]), r) for r in _fly(todo, writer, width, save_trajectories))
+    return [held[writer.name(e, s)] for e, s in jobs]
 
 
 RAY_TASK_EPISODES = 16  # default episodes per Ray task of a lockstep agent
 
 
-def run_evaluation(evaluator: Any, todo: list[tuple[str, int]], on_episodes: Callable[[int], None]) -> set[str]:
-    """Fly ``todo`` of a :class:`~racebench.evaluation.Evaluator` as Ray tasks; return the record names written.
+def run_evaluation(
+    evaluator: Any, todo: list[tuple[str, int]], on_episodes: Callable[[int], None]
+) -> list[dict[str, Any]]:
+    """Fly ``todo`` of a :class:`~racebench.evaluation.Evaluator` as Ray tasks; return the records written.
 
     ``on_episodes(n)`` is called as each task's ``n`` episodes finish (the progress bar).
     """
@@ -160,7 +161,7 @@ def run_evaluation(evaluator: Any, todo: list[tuple[str, int]], on_episodes: Cal
 
     options: RayOptions = evaluator.ray_options
     if not todo:
-        return set()
+        return []
     size = options.task_episodes
     if size is None:  # lockstep agents: tasks of the lockstep width, at most RAY_TASK_EPISODES (spread the work)
         batching = evaluator.width > 1 and isinstance(evaluator.probe, BatchAgent)
@@ -170,24 +171,23 @@ def run_evaluation(evaluator: Any, todo: list[tuple[str, int]], on_episodes: Cal
     # Absolute paths: a Ray worker's working directory is not the driver's.
     writer = dataclasses.replace(evaluator.writer, out_dir=Path(evaluator.out_dir).resolve())
     spec = worker_spec(evaluator.agent_spec)
-    written: set[str] = set()
+    written: list[dict[str, Any]] = []
     with connected(options) as ray:
         remote = ray.remote(_fly_task).options(num_cpus=options.task_cpus, max_retries=options.max_retries)
         refs = {
             remote.remote(
                 spec, evaluator.identity.sha256, evaluator.renderer, evaluator.trust_code, task, writer,
-                width, evaluator.save_trajectories, evaluator.agent_kwargs,
+                width, evaluator.save_trajectories, evaluator.agent_kwargs, evaluator.vecnormalize,
             ): len(task)
             for task in tasks
         }  # fmt: skip
 
-        def done(ref: Any, records: list[tuple[str, bytes]]) -> None:
-            for name, data in records:
-                path = writer.out_dir / "records" / name
-                if not path.exists():  # the worker's node does not share the output folder
-                    validate_record(json.loads(data), name)
-                    atomic_write(path, data)
-                written.add(name)
+        def done(ref: Any, records: list[dict[str, Any]]) -> None:
+            for record in records:
+                validate_record(record)  # a worker's record is checked before the driver keeps a copy
+            # The driver's copy in its own shard: all of a task's records in one append.
+            append_line(shard_path(writer.out_dir), b"".join(record_line(r) for r in records))
+            written.extend(records)
             on_episodes(refs[ref])
 
         wait_all(ray, list(refs), done)

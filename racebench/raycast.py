@@ -241,7 +241,7 @@ class BatchDepthRenderer:
 class ObstacleSight:
     """Which obstacles of one scene the onboard camera shows: obstacle ``j`` is in view when it is the nearest
     surface on at least ``min_pixels`` pixels of the noise-free depth image, i.e. rendering the scene without it
-    makes those pixels deeper by more than ``margin`` (the definition ``baselines/crash_visibility.py`` uses).
+    makes those pixels deeper by more than ``margin`` (the definition ``scripts/crash_visibility.py`` uses).
     Occlusion, the 90° field of view and the 10 m range all count; one batched render of the scene and of the
     scene without each obstacle asked about.
 

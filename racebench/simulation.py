@@ -13,43 +13,15 @@ the arithmetic on them.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
-import sys
-from collections.abc import Iterator
 from typing import NamedTuple
 
 import numpy as np
 
+from racebench.bullet import bullet_client, p, quiet_c_output
 from racebench.quadrotor import QuadrotorParams
 from racebench.scene import Scene
 from racebench.track import Track
-
-
-@contextlib.contextmanager
-def _quiet_stdout() -> Iterator[None]:
-    """Silence C-level stdout (PyBullet prints its build time and ``argv[0]=`` on import/connect)."""
-    try:
-        sys.stdout.flush()
-        fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):  # no real file descriptor (e.g. a notebook)
-        yield
-        return
-    saved = os.dup(fd)
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), fd)
-        yield
-    finally:
-        os.dup2(saved, fd)
-        os.close(saved)
-
-
-with _quiet_stdout():
-    import pybullet as p
-    from pybullet_utils import bullet_client
-
 
 _PARK_Z = -100.0  # unused obstacle bodies wait here, out of sight and out of reach
 _GATE_RGBA = [0.95, 0.45, 0.05, 1.0]
@@ -88,7 +60,42 @@ def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
     return (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
 
 
-def _gui_client() -> bullet_client.BulletClient:
+_NO_COPY = (
+    "{what} cannot be copied or pickled: it owns a PyBullet connection that a copy would share (and disconnect "
+    "when garbage-collected). Make a new env with gym.make(env.spec) instead; for the same scene, "
+    "new_env.reset(options={{'scene': env.unwrapped.scene}})"
+)
+
+
+class _Uncopyable:
+    """Refuses ``copy.copy``, ``copy.deepcopy`` and pickling with a TypeError, as :class:`~racebench.env.RaceEnv` does.
+
+    A copy of an object holding a PyBullet client id would share the connection, and the copy's clean-up (or
+    ``BulletClient.__del__``) would disconnect the original's physics server.
+    """
+
+    def __getstate__(self) -> None:
+        """Refuse pickling (a client id means nothing in another process, and a copy would share it)."""
+        raise TypeError(_NO_COPY.format(what=f"a racebench {type(self).__name__}"))
+
+    def __reduce_ex__(self, protocol: int) -> None:
+        """Refuse pickling and copying at the one entry both go through."""
+        raise TypeError(_NO_COPY.format(what=f"a racebench {type(self).__name__}"))
+
+    def __copy__(self) -> None:
+        """Refuse shallow copies."""
+        raise TypeError(_NO_COPY.format(what=f"a racebench {type(self).__name__}"))
+
+    def __deepcopy__(self, memo: dict) -> None:
+        """Refuse deep copies."""
+        raise TypeError(_NO_COPY.format(what=f"a racebench {type(self).__name__}"))
+
+
+class RaceBulletClient(_Uncopyable, bullet_client.BulletClient):
+    """PyBullet's ``BulletClient`` that refuses to be copied or pickled (see :class:`_Uncopyable`)."""
+
+
+def _gui_client() -> RaceBulletClient:
     """A client with PyBullet's GUI window, or a RuntimeError that says why there is none."""
     from racebench.env import display_available
 
@@ -99,7 +106,7 @@ def _gui_client() -> bullet_client.BulletClient:
         )
     why = "PyBullet allows one GUI window per process: close the other human-mode env first"
     try:
-        client = bullet_client.BulletClient(connection_mode=p.GUI)
+        client = RaceBulletClient(connection_mode=p.GUI)
     except p.error as exc:
         raise RuntimeError(f"render_mode='human': PyBullet could not open its GUI ({exc}); {why}") from exc
     if client._client < 0:  # a second GUI connection is refused with a printed message, not an exception
@@ -109,7 +116,7 @@ def _gui_client() -> bullet_client.BulletClient:
     return client
 
 
-class Simulation:
+class Simulation(_Uncopyable):
     """The physics world of one :class:`~racebench.env.RaceEnv`.
 
     Args:
@@ -123,8 +130,8 @@ class Simulation:
         if gui:
             self.client = _gui_client()
         else:
-            with _quiet_stdout():
-                self.client = bullet_client.BulletClient(connection_mode=p.DIRECT)
+            with quiet_c_output():  # connect prints argv[0]= to stdout
+                self.client = RaceBulletClient(connection_mode=p.DIRECT)
         c = self.client
         c.setGravity(0.0, 0.0, -params.gravity)
         c.setTimeStep(1.0 / physics_freq)

@@ -82,3 +82,46 @@ def paired_outcomes(a: pd.DataFrame, b: pd.DataFrame) -> tuple[int, int, int, fl
     only_a = int((pairs["success_a"] & ~pairs["success_b"]).sum())
     only_b = int((pairs["success_b"] & ~pairs["success_a"]).sum())
     return len(pairs), only_a, only_b, binomtest(only_b, only_a + only_b).pvalue if only_a + only_b else 1.0
+
+
+def holm_adjust(pvalues: list[float]) -> list[float]:
+    """Holm's step-down adjustment of ``pvalues`` (family-wise error rate), in the order given.
+
+    The i-th smallest p becomes ``max_{j<=i} min(1, (m - j + 1) p_(j))`` (Holm 1979): compare each with the level.
+    """
+    m = len(pvalues)
+    order = sorted(range(m), key=lambda i: pvalues[i])
+    adjusted = [0.0] * m
+    running = 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * pvalues[i]))
+        adjusted[i] = running
+    return adjusted
+
+
+def trend_test(strata: list[tuple[list[float], list[int], list[int]]]) -> tuple[float, float, float]:
+    """Cochran–Armitage test for a trend in proportions over ordered levels, stratified by summing the strata's
+    score statistics and variances (each stratum keeps its own success rate under the null hypothesis).
+
+    ``strata``: per stratum (e.g. per track) the levels' scores, successes and trials. Returns ``(z, p_decreasing,
+    p_increasing)``: the standardised statistic (negative when success falls as the score grows) and its one-sided
+    normal p-values. Unstratified, ``z**2`` equals ``N r**2``, r the Pearson correlation of score and outcome over
+    the N episodes (Agresti, *Categorical Data Analysis*, 3rd ed., Sec. 5.3.5).
+    """
+    from scipy.stats import norm
+
+    statistic = variance = 0.0
+    for scores, successes, trials in strata:
+        if not len(scores) == len(successes) == len(trials):
+            raise ValueError("trend_test: each stratum needs as many scores as success and trial counts")
+        total = sum(trials)
+        if total == 0:
+            continue
+        rate = sum(successes) / total
+        mean_score = sum(x * n for x, n in zip(scores, trials, strict=True)) / total
+        statistic += sum((s - n * rate) * x for x, s, n in zip(scores, successes, trials, strict=True))
+        variance += rate * (1 - rate) * sum(n * (x - mean_score) ** 2 for x, n in zip(scores, trials, strict=True))
+    if variance == 0:  # every episode of every stratum ended alike: no evidence of any trend
+        return 0.0, 1.0, 1.0
+    z = statistic / variance**0.5
+    return z, float(norm.cdf(z)), float(norm.sf(z))

@@ -9,12 +9,17 @@ A sweep file (YAML, loaded with ``yaml.safe_load``; ``baselines/sweeps/paper-tab
       - {config: vision-ppo, overrides: {n_envs: 32}}   # overrides of this config only
       - {config: vision-distill, steps: 500000}         # this config's own step budget
       - {config: vision-distill-ppo, after: vision-distill}   # starts from that config's final policy
+      - {config: vision-ppo, tracks: [J], seeds: [1, 2]}     # this entry's own tracks and seeds
     tracks: [S, J]
     seeds: [0, 1]                   # training seeds (below the evaluation seeds)
     steps: 200000                   # environment steps per run
     overrides: {num_processes: 1}   # applied to every config (before a config's own)
     eval_episodes: 10               # final evaluation of each run on RaceObs-<track>-v0 (0: none)
+    eval_episodes_other: 5          # ... and on each of its track's other ids of eval_suite (default: eval_episodes)
     eval_suite: main                # ... on which ids of its track: main, density, gates or paper (all 9 of them)
+    evaluate_policy_only: false     # evaluate the policy-only export policy/<name>-<track>.zip (the file to commit)
+    validation_every: 0             # fly the checkpoints at each multiple of this many steps (0: none) ...
+    validation_episodes: 100        # ... on this many validation scenes: validation_curve.csv (racebench.paper)
     checkpoint_every: 50000         # steps between checkpoints, the points a killed run resumes from
     device: auto                    # where the networks train (racebench train --device)
     cpus_per_run: null              # Ray: CPUs a run reserves (default: its config's num_processes)
@@ -37,6 +42,10 @@ run has finished; if that run failed, this one is reported failed without starti
 has checkpoints of its own, which need nothing from it). NAME is the ``name`` of a config listed earlier (after
 its overrides: the name in its run folders), so the local order already respects it.
 
+Runs are listed (and the local backend runs them) in the file's order: entry by entry, each entry's tracks, then
+its seeds. An entry may name the same config as another with other tracks or seeds (a campaign's extra seeds);
+``max_runs`` of :func:`run_sweep` (``racebench sweep --max-runs N``) trains only the next N unfinished runs.
+
 The local backend runs the runs one after another in this process; the Ray backend makes each run a Ray
 task reserving the CPUs (and GPUs) its config needs, so a cluster runs as many side by side as fit, each
 chained run submitted once the run it starts from has finished.
@@ -54,13 +63,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from racebench.ray_backend import RayOptions
 from racebench.records import atomic_write
+from racebench.yamlfile import read_yaml
 
 SWEEP_KEYS: tuple[str, ...] = (
-    "name", "out", "configs", "tracks", "seeds", "steps", "overrides", "eval_episodes", "eval_suite",
+    "name", "out", "configs", "tracks", "seeds", "steps", "overrides", "eval_episodes", "eval_episodes_other",
+    "eval_suite", "validation_every", "validation_episodes", "evaluate_policy_only",
     "checkpoint_every", "device", "cpus_per_run", "gpus_per_run",
 )  # fmt: skip
 logger = logging.getLogger("racebench")
@@ -83,6 +92,13 @@ class SweepRun:
     cpus: float
     gpus: float
     after: str | None = None  # the label of the run whose final policy this one starts from (``after:``)
+    eval_episodes_other: int | None = None  # episodes on each id after the main one (None: eval_episodes)
+    evaluate_policy_only: bool = False  # evaluate policy/<name>-<track>.zip (racebench export-policy) instead
+    validation_every: int = 0  # validation curve: checkpoints every this many steps (0: none) ...
+    validation_episodes: int = 100  # ... each flown on this many validation scenes
+    # Resume from (and evaluate) checkpoints the run folder did not write itself (racebench sweep --trust-code);
+    # without it only the files listed in the folder's written.json are unpickled (racebench.agents.require_trusted).
+    trust_code: bool = False
 
     @property
     def label(self) -> str:
@@ -99,7 +115,7 @@ class Sweep:
     runs: list[SweepRun]
 
 
-CONFIG_ENTRY_KEYS: tuple[str, ...] = ("config", "overrides", "steps", "after")
+CONFIG_ENTRY_KEYS: tuple[str, ...] = ("config", "overrides", "steps", "after", "tracks", "seeds")
 
 
 def _config_entry(entry: Any, source: str) -> dict[str, Any]:
@@ -113,7 +129,21 @@ def _config_entry(entry: Any, source: str) -> dict[str, Any]:
         )
     if "steps" in entry and not (type(entry["steps"]) is int and entry["steps"] >= 1):  # not a bool
         raise ValueError(f"{source}: steps of {entry['config']!r} must be an integer >= 1")
+    for key in ("tracks", "seeds"):
+        if key in entry and (not isinstance(entry[key], list) or not entry[key]):
+            raise ValueError(f"{source}: {key} of {entry['config']!r} must be a non-empty list")
     return entry
+
+
+def _check_tracks_and_seeds(tracks: list[Any], seeds: list[Any], source: str) -> None:
+    from racebench.evaluation import EVAL_SEED_BASE
+    from racebench.track import BUILTIN_TRACKS
+
+    bad_tracks = [t for t in tracks if t not in BUILTIN_TRACKS]
+    if bad_tracks:
+        raise ValueError(f"{source}: track {bad_tracks[0]!r} is not one of {BUILTIN_TRACKS}")
+    if not all(type(s) is int and 0 <= s < EVAL_SEED_BASE for s in seeds):
+        raise ValueError(f"{source}: seeds must be integers in [0, {EVAL_SEED_BASE}) (evaluation uses the rest)")
 
 
 def _load_config(entry: dict[str, Any], base: Path, overrides: dict[str, Any], source: str) -> Any:
@@ -140,17 +170,18 @@ def _load_config(entry: dict[str, Any], base: Path, overrides: dict[str, Any], s
     return config
 
 
-def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
+def load_sweep(path: str | Path, out: str | Path | None = None, trust_code: bool = False) -> Sweep:
     """Load and validate a sweep file (see the module docstring); ``out`` replaces its output folder.
+
+    ``trust_code``: every run may resume from a checkpoint its folder did not write (see :class:`SweepRun`).
 
     Raises ``ValueError`` (or ``OSError``) naming the first problem, before any run starts.
     """
-    from racebench.evaluation import EVAL_SEED_BASE, SUITES
-    from racebench.track import BUILTIN_TRACKS
+    from racebench.evaluation import SUITES
     from racebench.training.train import DEVICES
 
     path = Path(path)
-    data = yaml.safe_load(path.read_text())
+    data = read_yaml(path)
     source = str(path)
     if not isinstance(data, dict):
         raise ValueError(f"{source}: expected a mapping at the top level")
@@ -163,12 +194,9 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
     for key in ("configs", "tracks", "seeds"):
         if not isinstance(data[key], list) or not data[key]:
             raise ValueError(f"{source}: {key} must be a non-empty list")
-    bad_tracks = [t for t in data["tracks"] if t not in BUILTIN_TRACKS]
-    if bad_tracks:
-        raise ValueError(f"{source}: track {bad_tracks[0]!r} is not one of {BUILTIN_TRACKS}")
-    if not all(isinstance(s, int) and 0 <= s < EVAL_SEED_BASE for s in data["seeds"]):
-        raise ValueError(f"{source}: seeds must be integers in [0, {EVAL_SEED_BASE}) (evaluation uses the rest)")
-    numbers = {"steps": 1, "eval_episodes": 0, "checkpoint_every": 1}
+    _check_tracks_and_seeds(data["tracks"], data["seeds"], source)
+    numbers = {"steps": 1, "eval_episodes": 0, "eval_episodes_other": 1, "checkpoint_every": 1,
+               "validation_every": 0, "validation_episodes": 1}  # fmt: skip
     for key, low in numbers.items():
         if key in data and not (type(data[key]) is int and data[key] >= low):  # a YAML true is no number
             raise ValueError(f"{source}: {key} must be an integer >= {low}")
@@ -182,12 +210,19 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
         value = data.get(key)
         if value is not None and not (isinstance(value, int | float) and value >= 0):
             raise ValueError(f"{source}: {key} must be a number >= 0")
+    if not isinstance(data.get("evaluate_policy_only", False), bool):
+        raise ValueError(f"{source}: evaluate_policy_only must be true or false")
+    every = data.get("validation_every", 0)
+    if every and every % data.get("checkpoint_every", 50_000):
+        raise ValueError(f"{source}: validation_every must be a multiple of checkpoint_every")
     overrides = data.get("overrides") or {}
     if not isinstance(overrides, dict):
         raise ValueError(f"{source}: overrides must be a mapping")
     name = str(data.get("name", path.stem))
     root = Path(out or data.get("out") or Path("runs") / "sweeps" / name).resolve()  # Ray workers: absolute
     entries = [_config_entry(entry, source) for entry in data["configs"]]
+    for entry in entries:
+        _check_tracks_and_seeds(entry.get("tracks", data["tracks"]), entry.get("seeds", data["seeds"]), source)
     configs = [_load_config(entry, path.parent, overrides, source) for entry in entries]
     runs = []
     for index, (entry, config) in enumerate(zip(entries, configs, strict=True)):
@@ -204,14 +239,15 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
             config = dataclasses.replace(
                 config, init_from=f"{folder}/{after}-{{track}}-seed{{seed}}/{after}-{{track}}.zip"
             )
+        tracks, seeds = entry.get("tracks", data["tracks"]), entry.get("seeds", data["seeds"])
         several = getattr(config, "train_tracks", None)  # a DAgger student of several tracks: one run per seed
-        if several and (len(data["tracks"]) != 1 or data["tracks"][0] not in several):
+        if several and (len(tracks) != 1 or tracks[0] not in several):
             raise ValueError(
                 f"{source}: {config.name!r} trains one student for the tracks {several} (train_tracks): sweep it "
-                f"over one of them (tracks: [{several[0]}]), not {data['tracks']}"
+                f"over one of them (tracks: [{several[0]}]), not {tracks}"
             )
-        for track in data["tracks"]:
-            for seed in data["seeds"]:
+        for track in tracks:
+            for seed in seeds:
                 cpus = data.get("cpus_per_run")
                 runs.append(
                     SweepRun(
@@ -227,6 +263,11 @@ def load_sweep(path: str | Path, out: str | Path | None = None) -> Sweep:
                         cpus=float(config.num_processes if cpus is None else cpus),
                         gpus=float(data.get("gpus_per_run") or 0),
                         after=None if after is None else f"{after}-{track}-seed{seed}",
+                        eval_episodes_other=data.get("eval_episodes_other"),
+                        evaluate_policy_only=data.get("evaluate_policy_only", False),
+                        validation_every=every,
+                        validation_episodes=data.get("validation_episodes", 100),
+                        trust_code=trust_code,
                     )  # fmt: skip
                 )
     folders = [run.out.name for run in runs]
@@ -275,7 +316,7 @@ def run_job(run: SweepRun) -> dict[str, Any]:
     timesteps, success rate.
     """
     from racebench.evaluation import Evaluator
-    from racebench.training.train import _plain, run_training
+    from racebench.training.train import _plain, own_policy_trust, run_training
 
     row = {"run": run.label, "config": run.config.name, "track": run.track, "seed": run.seed}
     summary_path = run.out / "summary.json"
@@ -293,21 +334,55 @@ def run_job(run: SweepRun) -> dict[str, Any]:
             steps = max(run.steps - done, 0) if checkpoint is not None else run.steps
         run_training(
             run.config, run.track, steps, run.seed, run.out, resume=checkpoint,
-            checkpoint_every=run.checkpoint_every, eval_episodes=0, device=run.device,
+            checkpoint_every=run.checkpoint_every, eval_episodes=0, device=run.device, trust_code=run.trust_code,
         )  # fmt: skip
     summary = json.loads(summary_path.read_text())
+    if run.validation_every:  # incremental: only the multiples not yet in validation_curve.csv are flown
+        from racebench.paper import validation_curve
+
+        validation_curve(run.out, run.validation_every, run.validation_episodes, run.trust_code)
+    evaluated = summary["checkpoint"]
+    if run.evaluate_policy_only and hasattr(run.config, "n_steps"):
+        evaluated = str(run.out / "policy" / f"{run.config.name}-{run.track}.zip")
+        if not Path(evaluated).is_file():
+            export_run_policy(Path(summary["checkpoint"]), Path(evaluated), run.out, run.trust_code)
+        summary["policy"] = evaluated
     if run.eval_episodes > 0:
         # Evaluated apart from train() so a run killed while evaluating resumes its evaluation, not its training.
-        evaluator = Evaluator(  # this run's own checkpoint, written by racebench: trusted
-            summary["checkpoint"], list(run.eval_envs), episodes=run.eval_episodes, out_dir=run.out / "eval",
-            agent_name=f"{run.config.name}-seed{run.seed}", trust_code=True,
-        )  # fmt: skip
-        results = evaluator.run(progress=False).set_index("env_id")
-        main = results.loc[f"RaceObs-{run.track}-v0"]  # the sweep's table: the run's own track, as the paper's
+        # The main id with eval_episodes, the others with eval_episodes_other, into one folder of records.
+        other = run.eval_episodes if run.eval_episodes_other is None else run.eval_episodes_other
+        parts = [([run.eval_envs[0]], run.eval_episodes), ([*run.eval_envs[1:]], other)]
+        for envs, episodes in [(envs, n) for envs, n in parts if envs]:
+            evaluator = Evaluator(  # this run's own policy: trusted if its folder's written.json lists it
+                evaluated, envs, episodes=episodes, out_dir=run.out / "eval",
+                agent_name=f"{run.config.name}-seed{run.seed}",
+                trust_code=own_policy_trust(run.out, evaluated, run.trust_code),
+            )  # fmt: skip
+            results = evaluator.run(progress=False).set_index("env_id")
+            if envs[0] == run.eval_envs[0]:
+                main = results.loc[run.eval_envs[0]]  # the sweep's table: the run's own track, as the paper's
         summary["eval"] = {k: _plain(main[k]) for k in ("n", "successes", "success_rate", "lap_time_mean")}
         summary["eval"]["envs"] = list(run.eval_envs)
-        atomic_write(summary_path, json.dumps(summary, indent=2))
+    atomic_write(summary_path, json.dumps(summary, indent=2))
     return {**row, **_outcome(summary), "status": "done"}
+
+
+def export_run_policy(checkpoint: Path, out: Path, run_dir: Path, trust_code: bool = False) -> Path:
+    """A run's final checkpoint without its optimizer state (``racebench export-policy``), the file to commit;
+    observation-normalising statistics are copied beside it (reward-only ones change no action). Both are listed in
+    the run folder's ``written.json``, so the run's evaluation loads them without ``--trust-code``."""
+    import shutil
+
+    from racebench.agents import SB3Agent, export_policy, record_written, vecnormalize_path
+    from racebench.training.train import own_policy_trust
+
+    agent = SB3Agent(checkpoint, trust_code=own_policy_trust(run_dir, checkpoint, trust_code))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    written = [export_policy(agent.model, out)]
+    if agent.normalizer is not None:
+        written.append(Path(shutil.copyfile(vecnormalize_path(checkpoint), out.parent / "vecnormalize.pkl")))
+    record_written(run_dir, *written)
+    return out
 
 
 def _outcome(summary: dict[str, Any]) -> dict[str, Any]:
@@ -326,12 +401,15 @@ def run_sweep(
     backend: str = "local",
     ray_options: RayOptions | None = None,
     on_row: Callable[[dict[str, Any]], None] | None = None,
+    max_runs: int | None = None,
 ) -> list[dict[str, Any]]:
     """Run every unfinished run of ``sweep``; write ``<out>/sweep.csv``; return its rows (in the sweep's order).
 
     A failing run is recorded as ``failed: <reason>`` and the others go on. ``on_row`` is called as each
-    run ends. On Ray each run is a task reserving ``cpus``/``gpus``; Ray re-runs a task whose worker or
-    node died (``ray_options.max_retries``), which resumes from the run's folder.
+    run ends. ``max_runs`` (local backend): train at most this many unfinished runs, in the file's order, and
+    report the rest ``not started`` (a campaign run one run at a time). On Ray each run is a task reserving
+    ``cpus``/``gpus``; Ray re-runs a task whose worker or node died (``ray_options.max_retries``), which resumes
+    from the run's folder.
     """
     import pandas as pd
 
@@ -350,10 +428,18 @@ def run_sweep(
         finish(run, _failed(run, RuntimeError(f"it starts from {run.after}, which failed")))
         return True
 
+    if max_runs is not None and (backend != "local" or max_runs < 1):
+        raise ValueError("max_runs is an integer >= 1, for the local backend")
     if backend == "local":
+        started = 0
         for run in sweep.runs:  # load_sweep lists a run's `after` before it
+            if max_runs is not None and started >= max_runs and not is_finished(run):
+                finish(run, {"run": run.label, "config": run.config.name, "track": run.track, "seed": run.seed,
+                             "timesteps": None, "success_rate": None, "status": "not started"})  # fmt: skip
+                continue
             if blocked(run):
                 continue
+            started += not is_finished(run)
             try:
                 finish(run, run_job(run))
             except Exception as exc:  # noqa: BLE001 - one failing run must not stop the sweep

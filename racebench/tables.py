@@ -183,7 +183,7 @@ def over_seeds(summary: pd.DataFrame) -> pd.DataFrame:
 def _latex_escape(text: str) -> str:
     for char, repl in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#")):
         text = text.replace(char, repl)
-    return text.replace("±", r"$\pm$").replace("–", "--")
+    return text.replace("±", r"$\pm$").replace("–", "--").replace("·", r"$\cdot$")
 
 
 def render(frame: pd.DataFrame, bold: set, fmt: str, caption: str) -> str:

@@ -21,6 +21,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from racebench.yamlfile import yaml_problem
+
 BUILTIN_TRACKS: tuple[str, ...] = ("S", "J", "Circle")
 
 
@@ -125,7 +127,7 @@ class ObstacleRegion:
 
 @dataclass(frozen=True)
 class Track:
-    """A race track as loaded from a YAML file (see the module docstring and README)."""
+    """A race track as loaded from a YAML file (see the module docstring and docs/environment.md)."""
 
     name: str
     gates: tuple[Gate, ...]
@@ -159,7 +161,7 @@ def load_track(name_or_path: str | Path) -> Track:
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
-        raise TrackFormatError(f"{path}: not valid YAML ({exc})") from exc
+        raise TrackFormatError(f"{path}: not valid YAML: {yaml_problem(exc)}") from exc
     return parse_track(data, source=str(path))
 
 

@@ -14,8 +14,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pybullet as p
 from PIL import Image, ImageDraw, ImageFont
+
+from racebench.bullet import p
 
 VIDEO_FORMATS: tuple[str, ...] = (".gif", ".mp4")
 CHASE_SIZE = (640, 480)  # width, height of the chase view (px)
@@ -155,9 +156,11 @@ def render_episode_video(
     trust_code: bool = False,
     agent_kwargs: dict[str, Any] | None = None,
     label: str | None = None,
+    vecnormalize: str | Path | bool | None = None,
 ) -> tuple[Path, dict[str, Any]]:
     """Fly one episode of ``env_id`` with ``agent_spec`` (any spec ``racebench evaluate`` accepts) and write its
-    video to ``path`` (``.mp4`` or ``.gif``); return the path and the episode's result.
+    video to ``path`` (``.mp4`` or ``.gif``); return the path and the episode's result. ``vecnormalize``: an SB3
+    checkpoint's statistics (:func:`racebench.agents.resolve_vecnormalize`).
 
     Frames are taken every ``control_freq / fps`` steps, at the start and on the last step; the last frame
     is held for a second with the outcome in the caption.
@@ -169,7 +172,7 @@ def render_episode_video(
 
     if Path(path).suffix.lower() not in VIDEO_FORMATS:
         raise ValueError(f"{str(path)!r}: videos are written as {', '.join(VIDEO_FORMATS)}")
-    agent = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs)
+    agent = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs, vecnormalize=vecnormalize)
     env = gym.make(env_id, obs_mode="vision")
     raw = env.unwrapped
     every = max(1, round(raw.control_freq / fps))

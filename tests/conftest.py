@@ -28,6 +28,23 @@ def _reset_racebench_logger() -> Iterator[None]:
     _pristine_racebench_logger()
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _records_of_committed_code() -> Iterator[None]:
+    """Records written by the tests say ``git_dirty: false``, as from a clean checkout.
+
+    ``racebench leaderboard add`` refuses records made from uncommitted code; the tests' fixture repositories
+    stand for committed ones, and must not fail because the checkout running them has local edits. A test of the
+    refusal writes its dirty record explicitly. (In-process only: a worker process sees the real state.)
+    """
+    import racebench.evaluation
+    from racebench.records import git_state
+
+    commit, _ = git_state()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(racebench.evaluation, "git_state", lambda: (commit, False))
+        yield
+
+
 @pytest.fixture(scope="module")
 def ray_cluster():
     """A local Ray instance of 2 CPUs for this module's tests, shut down after them."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import textwrap
+from collections.abc import Callable
 from pathlib import Path
 
 import onnx
@@ -13,7 +14,7 @@ from racebench.evaluation import Evaluator
 from racebench.leaderboard.entries import add_entry
 from racebench.leaderboard.seeds import salt_sha256
 from racebench.quadrotor import QuadrotorParams
-from racebench.records import seal
+from racebench.records import RECORDS_FILE, compact_folder, record_line, seal
 
 ENV = "RaceObs-S-Level1-v0"  # no obstacles: hover and the planner run quickly and deterministically
 SALT = "leaderboard-test-salt-7d2f9c41b8e6"
@@ -53,12 +54,12 @@ def meta(name: str, obs_mode: str = "state") -> dict:
     """Descriptive entry fields, as a submitter fills them."""
     return {
         "name": name,
+        "description": f"{name}: a test policy that sees the state; 1000 steps on a test machine.",
         "authors": ["A. Tester"],
-        "method": "test policy",
-        "link": "tests/leaderboard_fixtures.py",
         "obs_mode": obs_mode,
-        "training_steps": 1000,
-        "training_wall_clock_s": 1.5,
+        "teacher": "none",
+        "config": "tests/leaderboard_fixtures.py",
+        "command": "none",
         "hardware": "a test machine",
         "training_seeds": [0],
     }
@@ -84,13 +85,39 @@ def write_hover_onnx(path: Path) -> Path:
     return path
 
 
-def make_repo(tmp: Path, private_accepted: bool = True) -> Path:
-    """A repository root with ``results/leaderboard`` whose config accepts :data:`SALT` (or nothing)."""
+def make_repo(tmp: Path, private_accepted: bool = True, public_key_pem: str | None = None) -> Path:
+    """A repository root with ``results/leaderboard`` whose config accepts :data:`SALT` (or nothing) and, given,
+    a maintainers' public key."""
     board = tmp / "results" / "leaderboard"
     board.mkdir(parents=True)
     salts = [salt_sha256(SALT)] if private_accepted else []
-    (board / "leaderboard.yaml").write_text(f"private_salt_sha256: {json.dumps(salts)}\n")
+    write_config(board, salts, public_key_pem)
     return board
+
+
+def write_config(board: Path, salts: list[str], public_key_pem: str | None) -> None:
+    """``leaderboard.yaml`` of a fixture leaderboard."""
+    text = f"private_salt_sha256: {json.dumps(salts)}\n"
+    if public_key_pem is not None:
+        text += "maintainers_public_key: |\n" + "".join(f"  {line}\n" for line in public_key_pem.splitlines())
+    (board / "leaderboard.yaml").write_text(text)
+
+
+def make_key(folder: Path, name: str = "key") -> tuple[Path, str, str]:
+    """A throwaway Ed25519 key: the private key's PEM file, the public key's PEM text and its fingerprint."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+    from racebench.leaderboard.signing import public_key_sha256
+
+    key = Ed25519PrivateKey.generate()
+    path = folder / f"{name}.pem"
+    path.write_bytes(
+        key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+    )
+    public = key.public_key()
+    pem = public.public_bytes(serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo).decode()
+    return path, pem, public_key_sha256(public)
 
 
 def evaluate(
@@ -102,8 +129,8 @@ def evaluate(
     return out
 
 
-def add(board: Path, policy: str, name: str, records: list[Path], **kw) -> object:
-    """``racebench leaderboard add`` for the fixture repository."""
+def add(board: Path, policy: str | dict, name: str, records: list[Path], **kw) -> object:
+    """``racebench leaderboard add`` for the fixture repository (one policy for all tracks, or per track)."""
     return add_entry(board, policy, meta(name, kw.pop("obs_mode", "state")), [str(r) for r in records], **kw)
 
 
@@ -116,16 +143,29 @@ def forge_successes(folder: Path) -> int:
     from racebench.records import env_facts
 
     count = 0
-    for path in (folder / "records").glob("*.json"):
-        record = json.loads(path.read_text())
+
+    def forge(record: dict) -> dict:
+        nonlocal count
         if record["success"]:
-            continue
+            return record
         facts = env_facts(record["env_id"])
-        forged = {**record, "success": True, "gates_passed": facts["gates"], "crashed": False, "crash_reason": None,
-                  "error": None, "lap_time": record["steps"] * facts["control_dt"]}  # fmt: skip
-        path.write_text(json.dumps(seal(forged)))
         count += 1
+        return seal({**record, "success": True, "gates_passed": facts["gates"], "crashed": False, "crash_reason": None,
+                     "error": None, "lap_time": record["steps"] * facts["control_dt"]})  # fmt: skip
+
+    rewrite_records(folder, forge)
     return count
+
+
+def folder_records(folder: Path) -> list[dict]:
+    """The records of ``folder/records.jsonl``, line by line (unvalidated: a test may have tampered with them)."""
+    return [json.loads(line) for line in (folder / RECORDS_FILE).read_text().splitlines()]
+
+
+def rewrite_records(folder: Path, edit: Callable[[dict], dict | None]) -> None:
+    """Rewrite ``folder/records.jsonl`` line by line through ``edit`` (``None`` drops the line): tampering."""
+    kept = [edit(record) for record in folder_records(folder)]
+    (folder / RECORDS_FILE).write_bytes(b"".join(record_line(r) for r in kept if r is not None))
 
 
 def write_records(
@@ -155,4 +195,5 @@ def write_records(
             result = {"success": False, "lap_time": None, "crashed": True, "crash_reason": "obstacle:0",
                       "gates_passed": 1, "return": -5.0, "steps": int(round(1.0 / dt)), "error": None}  # fmt: skip
         writer.write(env_id, seed, result, None)
+    compact_folder(out)  # one records.jsonl, as an evaluation leaves it
     return out

@@ -1,9 +1,12 @@
-"""The SB3 loader: VecNormalize statistics beside a checkpoint, uint8-depth policies on the standard envs."""
+"""The SB3 loader (VecNormalize statistics beside a checkpoint, uint8-depth policies on the standard envs) and what
+a policy hash covers (ONNX external data, a Python agent's modules, the committed hashes)."""
 
 from __future__ import annotations
 
+import json
 import pickle
 import shutil
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -15,10 +18,13 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 import racebench  # noqa: F401  (registers the ids)
 from racebench.agents import (
     TRUSTED_CHECKPOINTS,
+    AgentLoadError,
     SB3Agent,
     UntrustedCodeError,
+    export_onnx,
     load_agent,
     policy_identity,
+    python_agent_modules,
     vecnormalize_path,
 )
 from racebench.records import sha256_file
@@ -76,8 +82,9 @@ def test_the_statistics_are_part_of_the_policy_identity(normalised_ppo) -> None:
 
 def test_periodic_checkpoint_statistics_are_found_by_sb3s_name(tmp_path: Path) -> None:
     (tmp_path / "ppo_2048_steps.zip").write_bytes(b"")
-    (tmp_path / "vecnormalize.pkl").write_bytes(b"")  # a final model's, not this checkpoint's
-    assert vecnormalize_path(tmp_path / "ppo_2048_steps.zip") is None
+    (tmp_path / "vecnormalize.pkl").write_bytes(b"")  # a final model's, not this checkpoint's: never used silently
+    with pytest.raises(AgentLoadError, match="none is named as its own.*--no-vecnormalize"):
+        vecnormalize_path(tmp_path / "ppo_2048_steps.zip")
     (tmp_path / "ppo_vecnormalize_2048_steps.pkl").write_bytes(b"")
     assert vecnormalize_path(tmp_path / "ppo_2048_steps.zip") == tmp_path / "ppo_vecnormalize_2048_steps.pkl"
 
@@ -137,3 +144,105 @@ def test_a_uint8_depth_policy_flies_the_standard_envs(tmp_path: Path) -> None:
     np.testing.assert_allclose(agent.act_batch([obs_float, obs_float]), [expected, expected], atol=1e-6)
     standard.close()
     small.close()
+
+
+def test_onnx_external_data_is_part_of_the_policy_identity(tmp_path: Path) -> None:
+    """Weights saved as external data beside the graph: changing them changes the hash; a missing file is named."""
+    import onnx
+
+    model = PPO("MlpPolicy", gym.make(LEVEL1, obs_mode="state"), n_steps=32, seed=0, device="cpu")
+    inline = export_onnx(model, tmp_path / "inline.onnx")
+    assert policy_identity(str(inline)).sha256 == sha256_file(inline)  # no external data: the file's hash, as before
+    external = tmp_path / "external" / "policy.onnx"
+    external.parent.mkdir()
+    onnx.save_model(onnx.load(str(inline)), str(external), save_as_external_data=True, location="weights.bin",
+                    size_threshold=0)  # fmt: skip
+    weights = external.parent / "weights.bin"
+    agent = load_agent(str(external))
+    obs = observations(4)
+    agent.start(len(obs))
+    np.testing.assert_allclose(agent.act_batch(list(obs)), model.predict(obs, deterministic=True)[0], atol=1e-5)
+    before = policy_identity(str(external)).sha256
+    assert agent.sha256 == before != sha256_file(external)
+    graph_bytes = external.read_bytes()
+    data = bytearray(weights.read_bytes())
+    data[0] ^= 1  # other weights, the same graph file
+    weights.write_bytes(bytes(data))
+    assert external.read_bytes() == graph_bytes and policy_identity(str(external)).sha256 != before
+    weights.unlink()
+    for load in (policy_identity, load_agent):
+        with pytest.raises(AgentLoadError, match=r"external data 'weights.bin' does not exist") as caught:
+            load(str(external))
+        assert "\n" not in str(caught.value)
+
+
+AGENT_WITH_HELPER = """
+import numpy as np
+
+from helper import THRUST
+
+
+class Agent:
+    obs_mode = "state"
+
+    def reset(self, env=None, seed=None):
+        pass
+
+    def act(self, obs):
+        return np.array([THRUST, 0, 0, 0], dtype=np.float32)
+"""
+
+
+def test_a_python_agents_hash_covers_the_modules_it_imports(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.syspath_prepend(str(tmp_path))
+    (tmp_path / "agent.py").write_text(AGENT_WITH_HELPER)
+    (tmp_path / "helper.py").write_text("from numbers_helper import HALF\nTHRUST = HALF\n")
+    (tmp_path / "numbers_helper.py").write_text("HALF = 0.5\n")
+    spec = f"{tmp_path / 'agent.py'}:Agent"
+    first = policy_identity(spec).sha256
+    assert set(python_agent_modules(tmp_path / "agent.py")) == {"helper", "numbers_helper"}  # numpy is installed
+    assert first != sha256_file(tmp_path / "agent.py")
+    (tmp_path / "helper.py").write_text("from numbers_helper import HALF\nTHRUST = HALF * 1.0\n")
+    second = policy_identity(spec).sha256
+    assert second != first  # a changed helper: another policy, other records
+    (tmp_path / "numbers_helper.py").write_text("HALF = 0.25\n")
+    assert policy_identity(spec).sha256 not in (first, second)  # and a helper's helper
+    monkeypatch.delitem(sys.modules, "helper", raising=False)
+    monkeypatch.delitem(sys.modules, "numbers_helper", raising=False)
+    assert load_agent(spec, trust_code=True).act(None)[0] == 0.25
+
+
+def test_a_python_agent_loading_unhashed_code_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "hidden_helper", raising=False)
+    (tmp_path / "hidden_helper.py").write_text("THRUST = 0.5\n")
+    agent = AGENT_WITH_HELPER.replace(
+        "from helper import THRUST", 'THRUST = __import__("importlib").import_module(\n    "hidden" + "_helper").THRUST'
+    )
+    (tmp_path / "sneaky.py").write_text(agent)
+    with pytest.raises(AgentLoadError, match="loaded module 'hidden_helper' .* without importing it by name") as caught:
+        load_agent(f"{tmp_path / 'sneaky.py'}:Agent", trust_code=True)
+    assert "\n" not in str(caught.value)
+
+
+def committed_sha256(source: str) -> str:
+    """The policy_sha256 of the first committed record (results/, baselines/) of ``source``."""
+    for folder in ("results", "baselines"):
+        for records in sorted((ROOT / folder).glob("**/records.jsonl")):
+            for line in records.read_text().splitlines():
+                meta = json.loads(line)
+                if meta["policy_source"] == source:
+                    return meta["policy_sha256"]
+    raise AssertionError(f"no committed record of {source!r}")
+
+
+def test_builtin_and_committed_hashes_are_unchanged() -> None:
+    """Committed records key on these hashes: a built-in's, a shipped checkpoint's; a shipped Python agent importing
+    installed code only keeps its file's hash."""
+    for builtin in ("planner-fast", "hover"):
+        assert policy_identity(builtin).sha256 == committed_sha256(builtin)
+    checkpoint = "baselines/checkpoints/vision-ppo-S/vision-ppo-S.zip"
+    assert policy_identity(str(ROOT / checkpoint)).sha256 == committed_sha256(checkpoint)
+    ensemble = ROOT / "scripts/ensemble_agent.py"
+    assert python_agent_modules(ensemble) == {}  # racebench, numpy and the standard library only
+    assert policy_identity(f"{ensemble}:EnsembleAgent").sha256 == sha256_file(ensemble)

@@ -41,9 +41,9 @@ def record_folders(checkpoint: Path) -> list[Path]:
     """Where the leaderboard entry of ``checkpoint`` keeps its records (its folder's ``eval/`` if no entry names it):
     an entry may point at an experiment's evaluation of the same file instead of a copy."""
     for entry in sorted(ROOT.glob("results/leaderboard/*/entry.yaml")):
-        meta = yaml.safe_load(entry.read_text())
-        if ROOT / str(meta.get("policy", "")) == checkpoint:
-            return [ROOT / folder for folder in meta["records"]]
+        for line in yaml.safe_load(entry.read_text())["policies"].values():  # one line per track's policy
+            if ROOT / line["policy"] == checkpoint:
+                return [ROOT / folder for folder in line["records"]]
     return [checkpoint.parent / "eval"]
 
 

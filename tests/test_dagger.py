@@ -706,8 +706,8 @@ def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_
     torch.testing.assert_close(mean[key], (a[key] + b[key]) / 2)
     assert not torch.equal(a[key], b[key])  # two different students were kept
 
-    # baselines/average_students.py: the last 2 are the run's own average, the last 1 its last student.
-    spec = importlib.util.spec_from_file_location("average_students", ROOT / "baselines" / "average_students.py")
+    # scripts/average_students.py: the last 2 are the run's own average, the last 1 its last student.
+    spec = importlib.util.spec_from_file_location("average_students", ROOT / "scripts" / "average_students.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     # Three kept students (it000 a copy of it002, so the last 2 differ from all 3): the last K of them, in order.
@@ -1182,3 +1182,24 @@ def test_an_acceleration_student_is_taught_the_experts_commands_and_flown_throug
         student.write_text((ROOT / "baselines" / "vision-ppo.yaml").read_text() + f"\naction_output: {bad}\n")
         with pytest.raises(ValueError, match=message):
             TrainConfig.from_yaml(student)
+
+
+def test_a_dagger_resume_reads_tensors_and_arrays_only(tmp_path: Path) -> None:
+    """The saved student and optimizer state are read with ``weights_only``: a pickle payload in them never runs."""
+    import torch
+    from payloads import Payload, evil_sb3_zip
+
+    from racebench.training.dagger import load_optimizer_state, saved_policy_state
+
+    marker = tmp_path / "ran"
+    with pytest.raises(ValueError, match="holds no readable policy weights") as exc:
+        saved_policy_state(evil_sb3_zip(tmp_path / "student.zip", marker))
+    assert "\n" not in str(exc.value)
+    torch.save({"optimizer": {}, "torch_rng": Payload(marker)}, tmp_path / "optimizer.pt")
+    with pytest.raises(ValueError, match="optimizer.pt holds more than tensors"):
+        load_optimizer_state(tmp_path / "optimizer.pt")
+    assert not marker.exists()
+    state = {"optimizer": torch.optim.Adam([torch.nn.Parameter(torch.ones(2))]).state_dict(),
+             "torch_rng": torch.get_rng_state()}  # fmt: skip
+    torch.save(state, tmp_path / "optimizer.pt")  # what save_resume_state writes loads as before
+    assert torch.equal(load_optimizer_state(tmp_path / "optimizer.pt")["torch_rng"], state["torch_rng"])

@@ -221,6 +221,25 @@ def test_copies_and_pickles_are_refused_with_a_way_out() -> None:
         env.unwrapped.reset(seed=0)
 
 
+def test_the_simulator_and_its_pybullet_client_refuse_copies_and_pickles() -> None:
+    """A copy of the inner simulator would share its PyBullet connection and disconnect it when collected."""
+    import copy
+    import gc
+
+    env = gym.make("RaceObs-S-v0", obs_mode="state")
+    env.reset(seed=0)
+    sim = env.unwrapped.sim
+    for inner in (sim, sim.client):
+        for attempt in (copy.copy, copy.deepcopy, pickle.dumps):
+            with pytest.raises(TypeError, match=f"{type(inner).__name__} cannot be copied or pickled"):
+                attempt(inner)
+    gc.collect()  # no half-made copy is left whose clean-up would disconnect the original
+    for _ in range(5):
+        env.step(env.action_space.sample())  # the original still reaches its physics server
+    assert sim.client.getNumBodies() > 0
+    env.close()
+
+
 @pytest.mark.parametrize(
     "kwargs, named",
     [
@@ -312,7 +331,7 @@ def test_time_limit_truncates_once_on_the_envs_own_step() -> None:
 @pytest.mark.parametrize("track", ["S", "J", "Circle"])
 def test_density3_is_an_alias_of_the_main_id(track: str) -> None:
     alias, main = f"RaceObs-{track}-Density3-v0", f"RaceObs-{track}-v0"
-    assert ENV_KWARGS[alias] == ENV_KWARGS[main]  # the README says so
+    assert ENV_KWARGS[alias] == ENV_KWARGS[main]  # docs/environment.md says so
     a, b = gym.make(alias, obs_mode="state"), gym.make(main, obs_mode="state")
     a.reset(seed=9)
     b.reset(seed=9)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -32,6 +33,7 @@ from racebench.evaluation import (
     split_env_id,
     wilson_interval,
 )
+from racebench.records import atomic_write, name_of, read_folder, read_trajectories, validate_record
 from racebench.tables import make_table
 
 # ------------------------------------------------------------------ statistics
@@ -154,37 +156,84 @@ def test_resume_skips_finished_episodes(tmp_path: Path) -> None:
     out = tmp_path / "sweep"
     first = Evaluator("hover", ["RaceObs-S-Level1-v0"], episodes=2, out_dir=out)
     first.run(progress=False)
-    records = sorted((out / "records").iterdir())
-    stamps = {p.name: p.stat().st_mtime_ns for p in records}
+    before = read_folder(out).lines
     second = Evaluator("hover", ["RaceObs-S-Level1-v0"], episodes=3, out_dir=out)
     assert second.pending() == [("RaceObs-S-Level1-v0", EVAL_SEED_BASE + 2)]
     second.run(progress=False)
-    assert {p.name: p.stat().st_mtime_ns for p in records} == stamps  # finished episodes untouched
-    assert len(pd.read_csv(out / "episodes.csv")) == 3
+    after = read_folder(out).lines
+    assert {name: after[name] for name in before} == before  # finished episodes untouched
+    assert len(pd.read_csv(out / "episodes.csv")) == 3 and len(after) == 3
 
 
-def test_a_killed_sweep_loses_only_the_episode_in_flight(tmp_path: Path) -> None:
+def _shard_lines(out: Path) -> list[bytes]:
+    return [line for shard in out.glob("records-*.jsonl") for line in shard.read_bytes().splitlines(keepends=True)]
+
+
+def test_a_killed_sweep_loses_only_the_episodes_in_flight(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """SIGKILL of a two-worker evaluation (spawned processes, each appending to its own shard) mid-run, a torn
+    last line as a kill mid-write leaves it; the resume keeps every whole line, re-runs the rest, counts right."""
     out = tmp_path / "killed"
     script = (
         "from racebench.evaluation import Evaluator\n"
-        f"Evaluator('planner', ['RaceObs-S-Level1-v0'], episodes=40, out_dir={str(out)!r}).run(progress=False)\n"
+        f"Evaluator('planner', ['RaceObs-S-Level1-v0'], episodes=40, out_dir={str(out)!r}, workers=2)"
+        ".run(progress=False)\n"
     )
     proc = subprocess.Popen([sys.executable, "-c", script], start_new_session=True)
-    records = out / "records"
-    deadline = time.time() + 120
-    while time.time() < deadline and len(list(records.glob("*.json"))) < 2:
+    deadline = time.time() + 180
+    # Until both workers have written: two processes appending at once is what could interleave lines.
+    while time.time() < deadline and (
+        len([x for x in _shard_lines(out) if x.endswith(b"\n")]) < 3 or len(list(out.glob("records-*.jsonl"))) < 2
+    ):
         time.sleep(0.05)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-    done = list(records.glob("*.json"))
-    assert 2 <= len(done) < 40, "the sweep should have been killed part-way"
-    for record in done:
-        json.loads(record.read_text())  # every record on disk is whole
-    resumed = Evaluator("planner", ["RaceObs-S-Level1-v0"], episodes=len(done) + 1, out_dir=out)
-    assert len(resumed.pending()) == 1
+    assert not (out / "records.jsonl").exists(), "the sweep should have been killed part-way"
+    shards = sorted(out.glob("records-*.jsonl"))
+    whole = [line for line in _shard_lines(out) if line.endswith(b"\n")]
+    assert 3 <= len(whole) < 40 and len(shards) == 2  # one shard per worker process, never a shared file
+    for line in whole:
+        validate_record(json.loads(line))  # no two processes' lines interleaved
+    # A kill in the middle of a write: the shard's last line cut off (each line is one write, so only the last).
+    victim = shards[0]
+    if victim.read_bytes().endswith(b"\n"):  # unless the kill itself cut a write off, cut one off as it would
+        with victim.open("ab") as f:
+            f.write(whole[0][: len(whole[0]) // 2])
+    kept = [line for line in _shard_lines(out) if line.endswith(b"\n")]
+    with caplog.at_level(logging.WARNING, logger="racebench"):
+        resumed = Evaluator("planner", ["RaceObs-S-Level1-v0"], episodes=40, out_dir=out)
+    assert "torn record line dropped" in caplog.text
+    assert not list(out.glob("records-*.jsonl")) and not (out / "invalid.jsonl").exists()
+    merged = (out / "records.jsonl").read_bytes().splitlines(keepends=True)
+    assert set(kept) <= set(merged) and len(merged) == len(set(kept))  # every finished episode kept, once
+    assert len(resumed.pending()) == 40 - len(merged)
     resumed.run(progress=False)
     frame = load_records(out)
-    assert len(frame) == len(done) + 1 and frame["seed"].is_unique
+    assert len(frame) == 40 and frame["seed"].is_unique and frame["success"].all()
+    assert set(kept) <= set((out / "records.jsonl").read_bytes().splitlines(keepends=True))
+
+
+def test_the_old_layout_is_read_and_migrated_on_resume(tmp_path: Path) -> None:
+    """A folder of one JSON file per record (before records.jsonl) still counts, and a resume converts it."""
+    out = tmp_path / "old"
+    Evaluator("hover", ["RaceObs-S-Level1-v0"], episodes=2, out_dir=out, save_trajectories=True).run(progress=False)
+    found = read_folder(out)
+    flights = read_trajectories(out)
+    for name, record in found.records.items():  # as the old RecordWriter wrote them
+        atomic_write(out / "records" / name, json.dumps(record, indent=1))
+    (out / "trajectories").mkdir()
+    for row, positions, scene in flights:
+        np.savez_compressed(out / "trajectories" / name_of(row).replace(".json", ".npz"), positions=positions,
+                            scene=json.dumps(scene), row=json.dumps(row))  # fmt: skip
+    (out / "records.jsonl").unlink()
+    (out / "trajectories.npz").unlink()
+    assert load_records(out)["digest"].tolist() == [
+        r["digest"] for r in sorted(found.records.values(), key=lambda r: r["seed"])
+    ]
+    assert [r for r, _, _ in read_trajectories(out)] == [r for r, _, _ in flights]
+    resumed = Evaluator("hover", ["RaceObs-S-Level1-v0"], episodes=3, out_dir=out, save_trajectories=True)
+    assert len(resumed.pending()) == 1 and not (out / "records").exists() and not (out / "trajectories").exists()
+    resumed.run(progress=False)
+    assert len(read_folder(out).records) == 3 and len(read_trajectories(out)) == 3
 
 
 # -------------------------------------------------------------------- loaders
@@ -651,14 +700,13 @@ def test_compare_pairs_two_evaluations_scene_by_scene_from_their_valid_records(t
     assert counts == [4, wins, 0, wins, 0]
     assert pairs.loc["all", "p"] == pytest.approx(expected_p)
     # An edited record (its outcome flipped) fails its digest: left out, its scene no longer paired.
-    records = sorted((a / "records").glob("*.json"))
-    first = next(path for path in records if json.loads(path.read_text())["seed"] == EVAL_SEED_BASE)
-    record = json.loads(first.read_text())
-    record["success"] = not record["success"]
-    first.write_text(json.dumps(record))
+    lines = [json.loads(line) for line in (a / "records.jsonl").read_text().splitlines()]
+    for record in lines:
+        record["success"] ^= record["seed"] == EVAL_SEED_BASE
+    (a / "records.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
     assert paired_comparison(a, b)[1].set_index("env_id").loc["all", "pairs"] == 3
-    for record_file in (b / "records").glob("*.json"):  # two policies in one folder
-        (a / "records" / record_file.name).write_bytes(record_file.read_bytes())
+    with (a / "records.jsonl").open("ab") as merged:  # two policies in one folder
+        merged.write((b / "records.jsonl").read_bytes())
     with pytest.raises(SystemExit, match=r"racebench compare: .* holds 2 policies' episodes \(follow, hover\)"):
         cli.main(["compare", str(a), str(b)])
     Evaluator("hover", ["RaceObs-Circle-Level1-v0"], episodes=1, out_dir=tmp_path / "c").run(progress=False)

@@ -1,4 +1,6 @@
-"""The README's stock stable-baselines3 snippet, run as written (fewer steps), and the CleanRL-style example."""
+"""The documentation's snippets run as written: the README's quickstart, the stock stable-baselines3 snippet of
+docs/training.md (fewer steps) and the CleanRL-style example; the README's shape and every relative link of the
+documentation."""
 
 from __future__ import annotations
 
@@ -17,21 +19,21 @@ import torch
 ROOT = Path(__file__).parents[1]
 
 
-def readme_block(heading: str) -> str:
-    """The first ```python block of the README section under ``heading``."""
-    text = (ROOT / "README.md").read_text()
+def page_block(page: str, heading: str) -> str:
+    """The first ```python block of the section under ``## heading`` of the Markdown page ``page``."""
+    text = (ROOT / page).read_text()
     section = text.split(f"\n## {heading}\n", 1)[1]
     return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
-def test_readme_stock_sb3_snippet_builds_a_cnn(tmp_path, monkeypatch) -> None:
-    code = readme_block("Train with stock stable-baselines3")
-    # Only the step budget changes: one rollout instead of the README's few thousand steps.
+def test_stock_sb3_snippet_builds_a_cnn(tmp_path, monkeypatch) -> None:
+    code = page_block("docs/training.md", "Train with stock stable-baselines3")
+    # Only the step budget changes: one rollout instead of the page's few thousand steps.
     code, count = re.subn(r"^steps = [\d_]+", "steps = 512", code, flags=re.M)
-    assert count == 1, "the README snippet must set its budget in one `steps = N` line"
+    assert count == 1, "the snippet must set its budget in one `steps = N` line"
     monkeypatch.chdir(tmp_path)
-    namespace: dict = {"__name__": "__readme__"}
-    exec(compile(code, "README.md", "exec"), namespace)
+    namespace: dict = {"__name__": "__docs__"}
+    exec(compile(code, "docs/training.md", "exec"), namespace)
     model = namespace["model"]
     convs = [m for m in model.policy.features_extractor.modules() if isinstance(m, torch.nn.Conv2d)]
     assert len(convs) >= 3, "stock SB3 must give the depth image a CNN (NatureCNN)"
@@ -41,7 +43,7 @@ def test_readme_stock_sb3_snippet_builds_a_cnn(tmp_path, monkeypatch) -> None:
 
 
 def load_cleanrl():
-    spec = importlib.util.spec_from_file_location("cleanrl_ppo", ROOT / "baselines" / "cleanrl_ppo.py")
+    spec = importlib.util.spec_from_file_location("cleanrl_ppo", ROOT / "scripts" / "cleanrl_ppo.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses resolve the module's annotations through sys.modules
     spec.loader.exec_module(module)
@@ -83,10 +85,63 @@ def test_readme_first_python_snippet_runs_as_written(tmp_path, monkeypatch, caps
     assert "prog" in capsys.readouterr().out  # the reward terms it prints
 
 
-def test_the_ab_report_reads_run_folders_and_applies_the_stated_rule(tmp_path) -> None:
-    """baselines/ab_report.py: rows from a sweep's run folders; the decision only with 3 finished runs per arm."""
+SETUP = [  # README.md's first 8 lines, exactly: .ci/run and tests/test_records.py rely on them
+    "# racebench",
+    "",
+    "```bash",
+    "# 1. set up and evaluate the built-in privileged planner on the paper's three tracks (Table II suite)",
+    "pip install torch==2.13.0 && pip install -e . && racebench evaluate --agent planner --envs main",
+    "# 2. set up and run the tests",
+    "pip install torch==2.13.0 && pip install -e '.[test,ray]' && python -m pytest -q -n 2 -m \"not ray\" && "
+    "python -m pytest -q -m ray -p no:xdist",
+    "```",
+]
 
-    spec = importlib.util.spec_from_file_location("ab_report", ROOT / "baselines" / "ab_report.py")
+
+def test_the_readme_is_a_front_page() -> None:
+    """README.md: at most 250 lines, opening with the two set-up commands as .ci/run and the tests use them, and
+    the results-at-a-glance block (whose body may be generated) within its first 80 lines."""
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 250, f"README.md has {len(lines)} lines; details belong in docs/"
+    assert lines[:8] == SETUP, "README.md must open with the title and the two set-up commands, unchanged"
+    begin, end = "<!-- results-at-a-glance:begin -->", "<!-- results-at-a-glance:end -->"
+    assert lines.count(begin) == 1 and lines.count(end) == 1, "one results-at-a-glance block, markers on own lines"
+    assert lines.index(begin) < lines.index(end) < 80, "the results-at-a-glance block must end within line 80"
+    assert lines[lines.index(begin) - 2] == "## Results at a glance", "the block sits under its heading"
+
+
+DOC_PAGES = ["README.md", "results/README.md", "results/leaderboard/README.md", *sorted(
+    str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("*.md"))]  # fmt: skip
+
+
+@pytest.mark.parametrize("page", DOC_PAGES)
+def test_every_relative_link_resolves(page: str) -> None:
+    """Every relative link and image of the page names a file or folder of the repository, and every #anchor into a
+    Markdown page names one of its headings (GitHub's slugs)."""
+
+    def slug(heading: str) -> str:
+        return re.sub(r"[^\w\- ]", "", heading.strip().lower().replace("`", "")).replace(" ", "-")
+
+    text = re.sub(r"```.*?```", "", (ROOT / page).read_text(), flags=re.S)  # links in code blocks are not links
+    broken = []
+    for target in re.findall(r"\]\(([^)\s]+)\)", text):
+        if re.match(r"[a-z]+:", target):
+            continue  # https:, mailto:
+        path, _, anchor = target.partition("#")
+        file = (ROOT / page).parent / path if path else ROOT / page
+        if not file.exists():
+            broken.append(target)
+        elif anchor and file.suffix == ".md":
+            headings = re.findall(r"^#+ (.+)$", re.sub(r"```.*?```", "", file.read_text(), flags=re.S), re.M)
+            if anchor not in {slug(h) for h in headings}:
+                broken.append(target)
+    assert not broken, f"{page}: links to nothing: {broken}"
+
+
+def test_the_ab_report_reads_run_folders_and_applies_the_stated_rule(tmp_path) -> None:
+    """scripts/ab_report.py: rows from a sweep's run folders; the decision only with 3 finished runs per arm."""
+
+    spec = importlib.util.spec_from_file_location("ab_report", ROOT / "scripts" / "ab_report.py")
     report = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(report)
 
@@ -125,13 +180,13 @@ def test_the_ab_report_reads_run_folders_and_applies_the_stated_rule(tmp_path) -
 
 
 def test_gate_crossings_finds_where_a_policy_crosses_each_gate(tmp_path, monkeypatch, capsys) -> None:
-    """baselines/gate_crossings.py on the expert's own saved flights: it crosses where it planned to."""
+    """scripts/gate_crossings.py on the expert's own saved flights: it crosses where it planned to."""
     from racebench import cli
 
     out = tmp_path / "eval"
     assert cli.main(["-q", "evaluate", "--agent", "planner-fast", "--envs", "RaceObs-S-v0", "--episodes", "2",
                      "--out", str(out), "--save-trajectories"]) == 0  # fmt: skip
-    spec = importlib.util.spec_from_file_location("gate_crossings", ROOT / "baselines" / "gate_crossings.py")
+    spec = importlib.util.spec_from_file_location("gate_crossings", ROOT / "scripts" / "gate_crossings.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     monkeypatch.setattr(sys, "argv", ["gate_crossings.py", str(out), "--env", "RaceObs-S-v0"])
@@ -148,7 +203,7 @@ def test_gate_crossings_finds_where_a_policy_crosses_each_gate(tmp_path, monkeyp
 
 
 def test_paired_outcomes_counts_the_discordant_pairs_and_tests_them_exactly(tmp_path, monkeypatch, capsys) -> None:
-    spec = importlib.util.spec_from_file_location("paired_outcomes", ROOT / "baselines" / "paired_outcomes.py")
+    spec = importlib.util.spec_from_file_location("paired_outcomes", ROOT / "scripts" / "paired_outcomes.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     # Seeds 0-9 on one id: A finishes 0-5, B finishes 2-9; so 2 only by A (0, 1), 4 only by B (6-9).
@@ -169,7 +224,7 @@ def test_paired_outcomes_counts_the_discordant_pairs_and_tests_them_exactly(tmp_
 
 
 def test_failure_overlap_finds_failures_piled_on_the_same_scenes(tmp_path, monkeypatch, capsys) -> None:
-    spec = importlib.util.spec_from_file_location("failure_overlap", ROOT / "baselines" / "failure_overlap.py")
+    spec = importlib.util.spec_from_file_location("failure_overlap", ROOT / "scripts" / "failure_overlap.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     # Three agents, 20 scenes: all fail scenes 0-3 (so each finishes 16 of 20), the rest they all finish.
@@ -194,7 +249,7 @@ def test_failure_overlap_finds_failures_piled_on_the_same_scenes(tmp_path, monke
 
 
 def test_selection_report_ranks_candidates_and_pairs_the_chosen_with_the_last(tmp_path, monkeypatch, capsys) -> None:
-    spec = importlib.util.spec_from_file_location("selection_report", ROOT / "baselines" / "selection_report.py")
+    spec = importlib.util.spec_from_file_location("selection_report", ROOT / "scripts" / "selection_report.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     # Validation 5/7/9 of 10 for it018/it019/average (the average chosen); evaluation on seeds 0-9: it018 finishes
@@ -220,7 +275,7 @@ def test_selection_report_ranks_candidates_and_pairs_the_chosen_with_the_last(tm
 
 
 def test_seeds_report_takes_the_mean_and_spread_of_validated_records(tmp_path, monkeypatch, capsys) -> None:
-    spec = importlib.util.spec_from_file_location("seeds_report", ROOT / "baselines" / "seeds_report.py")
+    spec = importlib.util.spec_from_file_location("seeds_report", ROOT / "scripts" / "seeds_report.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     # Three committed 100-episode evaluations on S stand in for three seeds: 76, 69 and 62 laps finished.
@@ -246,7 +301,7 @@ def test_crash_visibility_counts_the_hit_obstacles_pixels_and_replays_crashes(tm
     from racebench.evaluation import Evaluator
     from racebench.raycast import BatchDepthRenderer
 
-    spec = importlib.util.spec_from_file_location("crash_visibility", ROOT / "baselines" / "crash_visibility.py")
+    spec = importlib.util.spec_from_file_location("crash_visibility", ROOT / "scripts" / "crash_visibility.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     env = gym.make("RaceObs-S-v0")
@@ -278,8 +333,8 @@ def test_crash_geometry_finds_an_obstacle_blind_agent_unmoved_by_what_it_hits(tm
     to the step of the hit, and passes where the obstacle stood within the drone's collision radius."""
     from racebench.evaluation import Evaluator
 
-    monkeypatch.syspath_prepend(str(ROOT / "baselines"))  # crash_geometry imports crash_visibility's replay
-    spec = importlib.util.spec_from_file_location("crash_geometry", ROOT / "baselines" / "crash_geometry.py")
+    monkeypatch.syspath_prepend(str(ROOT / "scripts"))  # crash_geometry imports crash_visibility's replay
+    spec = importlib.util.spec_from_file_location("crash_geometry", ROOT / "scripts" / "crash_geometry.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     Evaluator("follow", ["RaceObs-S-v0"], episodes=4, out_dir=tmp_path / "eval").run(progress=False)
@@ -302,7 +357,7 @@ def test_heldout_gap_scores_a_student_with_the_fits_own_loss(tmp_path, monkeypat
     from racebench.agents import SB3Agent
     from racebench.training.dagger import DaggerConfig, chunk_start_states, distill, sequence_loss
 
-    spec = importlib.util.spec_from_file_location("heldout_gap", ROOT / "baselines" / "heldout_gap.py")
+    spec = importlib.util.spec_from_file_location("heldout_gap", ROOT / "scripts" / "heldout_gap.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     run = tmp_path / "run"
@@ -336,7 +391,7 @@ def test_extra_fit_continues_a_runs_fit_from_its_saved_state(tmp_path, monkeypat
     from racebench.training import dagger
     from racebench.training.dagger import DaggerConfig, distill
 
-    spec = importlib.util.spec_from_file_location("extra_fit", ROOT / "baselines" / "extra_fit.py")
+    spec = importlib.util.spec_from_file_location("extra_fit", ROOT / "scripts" / "extra_fit.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     run = tmp_path / "run"
@@ -384,13 +439,13 @@ def test_extra_fit_continues_a_runs_fit_from_its_saved_state(tmp_path, monkeypat
 
 
 def test_ensemble_agent_averages_its_members_actions_and_pins_them(tmp_path, monkeypatch, capsys) -> None:
-    """baselines/ensemble_agent.py: one member acts as that member alone; two act as their mean, per episode
+    """scripts/ensemble_agent.py: one member acts as that member alone; two act as their mean, per episode
     and in lockstep; a member whose bytes differ from its pinned sha256 is refused."""
     import gymnasium as gym
 
     from racebench.agents import AgentLoadError, SB3Agent
 
-    spec = importlib.util.spec_from_file_location("ensemble_agent", ROOT / "baselines" / "ensemble_agent.py")
+    spec = importlib.util.spec_from_file_location("ensemble_agent", ROOT / "scripts" / "ensemble_agent.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     paths = [str(ROOT / "baselines" / "checkpoints" / f"vision-distill-{t}" / f"vision-distill-{t}.zip") for t in "SJ"]
@@ -426,8 +481,8 @@ def test_ensemble_agent_averages_its_members_actions_and_pins_them(tmp_path, mon
 
 
 def baseline_module(name: str):
-    """The script ``baselines/<name>.py`` imported as a module."""
-    spec = importlib.util.spec_from_file_location(name, ROOT / "baselines" / f"{name}.py")
+    """The script ``scripts/<name>.py`` imported as a module."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -445,7 +500,7 @@ def tiny_mixture_student(tmp_path: Path) -> str:
 
 
 def test_mixture_modes_flies_the_top_candidate_as_the_evaluator_does(tmp_path, monkeypatch) -> None:
-    """baselines/mixture_modes.py: its flight of a mixture student is the evaluator agent's flight (same steps, same
+    """scripts/mixture_modes.py: its flight of a mixture student is the evaluator agent's flight (same steps, same
     outcome), it returns every step's candidates with weights summing to 1, and a single-output checkpoint is
     refused."""
     import gymnasium as gym
@@ -477,7 +532,7 @@ def test_mixture_modes_flies_the_top_candidate_as_the_evaluator_does(tmp_path, m
 
 
 def test_the_mixture_readout_agent_flies_the_weighted_mean_of_the_candidates(tmp_path) -> None:
-    """baselines/mixture_readout_agent.py: its action is the softmax-weighted mean of the student's candidates (in
+    """scripts/mixture_readout_agent.py: its action is the softmax-weighted mean of the student's candidates (in
     lockstep and per episode); a checkpoint whose bytes differ from the pinned sha256, or without a mixture head, is
     refused."""
     import gymnasium as gym
@@ -516,7 +571,7 @@ def test_seen_teacher_flies_both_teachers_and_counts_lines_bent_for_the_unseen(m
     """On the first five S evaluation scenes the privileged line at reset passes within its berth of an obstacle not
     in view on two (scenes 3 and 4; the camera shows every obstacle near the line on 0-2); both teachers fly all
     five; a config that is not a DAgger one is refused by name."""
-    spec = importlib.util.spec_from_file_location("seen_teacher", ROOT / "baselines" / "seen_teacher.py")
+    spec = importlib.util.spec_from_file_location("seen_teacher", ROOT / "scripts" / "seen_teacher.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     config = str(ROOT / "baselines" / "experiments" / "distill-seen-teacher" / "config.yaml")
@@ -533,7 +588,7 @@ def test_seen_teacher_flies_both_teachers_and_counts_lines_bent_for_the_unseen(m
 
 
 def test_data_scaling_solves_the_logistic_fit_for_the_steps_to_a_target(tmp_path, monkeypatch) -> None:
-    spec = importlib.util.spec_from_file_location("data_scaling", ROOT / "baselines" / "data_scaling.py")
+    spec = importlib.util.spec_from_file_location("data_scaling", ROOT / "scripts" / "data_scaling.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     from scipy.special import expit, logit

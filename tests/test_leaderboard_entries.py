@@ -1,13 +1,24 @@
-"""Leaderboard entries: metadata validated against the policy's bytes, unique names, tiers computed not declared."""
+"""Leaderboard entries: methods of per-track policies, metadata validated, unique names, tiers computed not declared."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
 import yaml
-from leaderboard_fixtures import ENV, GC_AGENT, SALT, add, evaluate, make_repo, meta, write_hover_onnx, write_records
+from leaderboard_fixtures import (
+    ENV,
+    GC_AGENT,
+    SALT,
+    add,
+    evaluate,
+    folder_records,
+    make_repo,
+    meta,
+    rewrite_records,
+    write_hover_onnx,
+    write_records,
+)
 
 from racebench import cli
 from racebench.agents import BUILTIN_PRIVILEGED, TRUSTED_CHECKPOINTS
@@ -23,6 +34,8 @@ from racebench.leaderboard.entries import (
     summarize_cells,
 )
 from racebench.leaderboard.seeds import salt_sha256
+from racebench.leaderboard.site import entry_row
+from racebench.records import seal
 
 ROOT = Path(__file__).parents[1]
 
@@ -50,14 +63,14 @@ def board(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def tiers(board: Path) -> dict[str, str]:
-    """Entry name -> computed tier, with the fixture leaderboard's accepted salts."""
-    accepted = load_config(board)["private_salt_sha256"]
-    return {e.name: e.tier(accepted) for e in load_entries(board)}
+    """Entry name -> computed tier (no signed result in this fixture)."""
+    config = load_config(board)
+    return {e.name: entry_row(e, config).tier for e in load_entries(board)}
 
 
 def test_tiers_are_computed_from_the_policy_kind_and_the_seed_set(board: Path) -> None:
     assert tiers(board) == {
-        "onnx-verified": "verified",  # ONNX on the maintainers' private seeds
+        "onnx-verified": "self-reported",  # ONNX on the maintainers' private seeds, but nobody signed it
         "onnx-public-only": "self-reported",  # the same graph on public seeds only: fittable
         "sneaky": "self-reported",  # Python code, even on private seeds; it flew the privileged follower
         "planner": "reference",
@@ -68,17 +81,25 @@ def test_tiers_are_computed_from_the_policy_kind_and_the_seed_set(board: Path) -
     assert not any(r["privileged"] for r in sneaky.records)
     # It did cheat successfully (2 of 2 laps), so the tier is what protects the ranking; its private records are
     # not ranked at all (a self-reported entry ranks on public seeds, of which it has none).
-    assert summarize_cells(sneaky.records)[ENV].successes == 2 and sneaky.cells() == {}
-    accepted = [salt_sha256(SALT)]
-    verified = entries["onnx-verified"]
-    assert {r["seed_set"] for r in verified.ranked_records(accepted)} == {"private"}
-    assert {r["seed_set"] for r in entries["onnx-public-only"].ranked_records(accepted)} == {"public"}
+    assert summarize_cells(sneaky.records)[ENV].successes == 2 and sneaky.own_cells() == {}
+    config = load_config(board)
+    assert salt_sha256(SALT) in config["private_salt_sha256"]  # the records' salt is the accepted one...
+    unsigned = entry_row(entries["onnx-verified"], config)
+    assert {c.seed_set for c in unsigned.cells.values()} <= {"public"}  # ...yet it ranks on public records only
 
 
-def test_without_the_maintainers_salt_nothing_is_verified(board: Path, tmp_path: Path) -> None:
-    entries = load_entries(board)
-    assert all(e.tier([]) != "verified" for e in entries)  # a salt of the submitter's own choosing is not enough
-    assert all(e.tier([salt_sha256("someone-elses-salt-123456")]) != "verified" for e in entries)
+def test_a_policy_is_judged_on_its_own_track() -> None:
+    """A per-track method: each policy's own main id is its cell; its other main ids are cross-track only."""
+    entries = {e.name: e for e in load_entries(ROOT / DEFAULT_LEADERBOARD, ["vision-distill", "planner"])}
+    distill = entries["vision-distill"]
+    assert distill.complete and distill.tracks == ("S", "Circle", "J")
+    own = distill.own_cells()
+    for track in ("S", "Circle", "J"):
+        policy = distill.policies[track]
+        assert all(r["policy_sha256"] == policy.sha256 for r in distill.public_records(track))
+        assert own[f"RaceObs-{track}-v0"].n == 100  # its own track: 100 episodes, the others 50
+    assert {k.split("→")[0] for k in distill.cross_cells()} == {"S", "Circle", "J"} and len(distill.cross_cells()) == 6
+    assert entries["planner"].cross_cells() == {} and entries["planner"].complete
 
 
 def test_add_validates_the_policy_and_refuses_duplicates(board: Path, tmp_path: Path) -> None:
@@ -86,11 +107,11 @@ def test_add_validates_the_policy_and_refuses_duplicates(board: Path, tmp_path: 
     onnx_file = root / "policies" / "hover.onnx"
     with pytest.raises(EntryError, match="already exists"):
         add(board, str(onnx_file), "ONNX-Verified", [root / "results" / "onnx-public"])  # case-insensitive
-    with pytest.raises(EntryError, match="declared policy_sha256"):
+    with pytest.raises(EntryError, match="description must be one line"):
         from racebench.leaderboard.entries import add_entry
 
         add_entry(
-            board, str(onnx_file), {**meta("x"), "policy_sha256": "0" * 64}, [str(root / "results" / "onnx-public")]
+            board, str(onnx_file), {**meta("x"), "description": "two\nlines"}, [str(root / "results" / "onnx-public")]
         )
     outside = write_hover_onnx(tmp_path / "elsewhere.onnx")
     with pytest.raises(EntryError, match="inside the repository"):
@@ -108,15 +129,21 @@ def test_a_committed_entry_whose_policy_changed_is_refused(board: Path) -> None:
     folder = board / "onnx-public-only"
     text = (folder / "entry.yaml").read_text()
     data = yaml.safe_load(text)
+    line = data["policies"]["all"]
     try:
-        (folder / "entry.yaml").write_text(yaml.safe_dump({**data, "policy_sha256": "1" * 64}))
-        with pytest.raises(EntryError, match="does not match"):
+        swapped = {**data, "policies": {"all": {**line, "policy": "builtin:planner"}}}
+        (folder / "entry.yaml").write_text(yaml.safe_dump(swapped))
+        with pytest.raises(EntryError, match="record of another policy"):
             load_entry(folder)
         (folder / "entry.yaml").write_text(yaml.safe_dump({**data, "name": "renamed"}))
         with pytest.raises(EntryError, match="differs from its folder"):
             load_entry(folder)
-        (folder / "entry.yaml").write_text(yaml.safe_dump({**data, "records": ["../outside"]}))
+        outside = {**data, "policies": {"all": {**line, "records": ["../outside"]}}}
+        (folder / "entry.yaml").write_text(yaml.safe_dump(outside))
         with pytest.raises(EntryError, match="inside the repository"):
+            load_entry(folder)
+        (folder / "entry.yaml").write_text(yaml.safe_dump({**data, "policies": {"S": line, "all": line}}))
+        with pytest.raises(EntryError, match="excludes per-track policies"):
             load_entry(folder)
     finally:
         (folder / "entry.yaml").write_text(text)
@@ -130,8 +157,9 @@ def test_cli_add_evaluates_and_errors_are_one_line(tmp_path: Path, monkeypatch: 
     argv = ["leaderboard", "add", "--policy", "hover", "--meta", str(meta_file), "--evaluate", "1"]
     assert cli.main(argv) == 0
     entry = load_entry(board / "my-hover")
-    assert entry.meta["records"] == ["results/leaderboard/my-hover/eval-public"]
-    assert sorted(entry.cells()) == sorted(MAIN_IDS) and all(c.n == 1 for c in entry.cells().values())
+    assert entry.meta["policies"]["all"]["records"] == ["results/leaderboard/my-hover/eval-public-all"]
+    assert sorted(entry.own_cells()) == sorted(MAIN_IDS) and all(c.n == 1 for c in entry.own_cells().values())
+    assert "  all: {policy: 'builtin:hover'" in (board / "my-hover" / "entry.yaml").read_text()  # one line a policy
     with pytest.raises(SystemExit, match=r"^racebench leaderboard add: an entry named 'my-hover' already exists"):
         cli.main(argv)
     meta_file.write_text("name: [unclosed")
@@ -141,25 +169,57 @@ def test_cli_add_evaluates_and_errors_are_one_line(tmp_path: Path, monkeypatch: 
         cli.main(["leaderboard", "verify", "--entry", "nobody"])
 
 
-def test_every_builtin_reference_and_committed_checkpoint_is_an_entry() -> None:
+def test_the_committed_entries_are_methods_with_descriptions() -> None:
     board = ROOT / DEFAULT_LEADERBOARD
     entries = {e.name: e for e in load_entries(board)}
-    accepted = load_config(board)["private_salt_sha256"]
-    checkpoints = {e.meta["policy"] for e in entries.values() if e.kind == "sb3"}
-    assert checkpoints == {f"baselines/checkpoints/{p}" for p in TRUSTED_CHECKPOINTS.values()}
+    assert set(entries) == {
+        "planner", "planner-fast", "follow", "hover", "vision-distill", "vision-distill-ppo", "vision-ppo", "state-ppo"
+    }  # fmt: skip
     for name in ("planner", "planner-fast", "follow", "hover"):
-        assert entries[name].meta["policy"] == f"builtin:{name}"
+        assert entries[name].meta["policies"] == {"all": {"policy": f"builtin:{name}", "records": [f"results/{name}"]}}
     privileged = {name for name, flag in BUILTIN_PRIVILEGED.items() if flag}
-    assert {n for n, e in entries.items() if e.tier(accepted) == "reference"} == privileged
+    assert {n for n, e in entries.items() if e.privileged} == privileged
+    checkpoints = {p.policy for e in entries.values() for p in e.policies.values() if p.kind == "sb3"}
+    assert checkpoints <= {f"baselines/checkpoints/{p}" for p in TRUSTED_CHECKPOINTS.values()}
+    assert {e.name for e in entries.values() if e.complete and not e.privileged} == {
+        "hover", "vision-distill", "vision-distill-ppo"
+    }  # fmt: skip
+    assert entries["vision-ppo"].tracks == ("S",) and entries["state-ppo"].tracks == ("S",)
     for entry in entries.values():
-        assert entry.meta["policy_sha256"] == policy_sha256(entry.meta["policy"], ROOT)
-        assert entry.records and all(r["policy_sha256"] == entry.meta["policy_sha256"] for r in entry.records)
+        assert entry.meta["description"].strip() and "\n" not in entry.meta["description"].strip()
+        steps, wall = entry.budget()
+        assert steps is not None and wall is not None, entry.name  # every budget is known
+        for policy in entry.policies.values():
+            assert policy.sha256 == policy_sha256(policy.policy, ROOT)
+            assert policy.records and all(r["policy_sha256"] == policy.sha256 for r in policy.records)
+    assert entries["state-ppo"].policies["S"].budget_source == "summary.json"
+    assert entries["vision-distill"].privileged_teacher and not entries["vision-ppo"].privileged_teacher
 
 
 def test_cherry_picked_episodes_are_refused(tmp_path: Path) -> None:
     board = make_repo(tmp_path)
     folder = write_records(tmp_path / "results" / "hover", "hover", ENV, 0, 3)
-    first = next(p for p in (folder / "records").glob("*.json") if json.loads(p.read_text())["seed"] == EVAL_SEED_BASE)
-    first.unlink()  # "flew 3, committed the 2 I liked"
+    rewrite_records(folder, lambda r: None if r["seed"] == EVAL_SEED_BASE else r)  # "flew 3, committed the 2 I liked"
     with pytest.raises(EntryError, match=r"not the first 2 seeds .*missing e\.g\. \[1000000\].*none picked"):
         add(board, "hover", "hover", [folder])
+
+
+def test_records_of_uncommitted_code_are_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    board = make_repo(tmp_path)
+    folder = write_records(tmp_path / "results" / "hover", "hover", ENV, 0, 3)
+    records = folder_records(folder)
+    record = records[1]
+    assert not record["git_dirty"]
+    rewrite_records(folder, lambda r: seal({**r, "git_dirty": True}) if r == record else r)  # a checkout with edits
+    with pytest.raises(EntryError, match=rf"^hover: 1 of 3 records were made from uncommitted code .*{ENV} seed "
+                       rf"{record['seed']}\)"):  # fmt: skip
+        add(board, "hover", "hover", [folder])
+    meta_file = tmp_path / "meta.yaml"
+    meta_file.write_text(yaml.safe_dump(meta("hover")))
+    monkeypatch.chdir(tmp_path)
+    argv = ["leaderboard", "add", "--policy", "hover", "--meta", str(meta_file), "--records", str(folder)]
+    with pytest.raises(SystemExit, match=r"^racebench leaderboard add: hover: 1 of 3 records [^\n]*clean checkout$"):
+        cli.main(argv)
+    assert not (board / "hover").exists()
+    rewrite_records(folder, lambda r: record if r["seed"] == record["seed"] else r)  # re-evaluated from a clean commit
+    assert cli.main(argv) == 0 and load_entry(board / "hover").records

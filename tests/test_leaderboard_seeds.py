@@ -20,7 +20,15 @@ from racebench.leaderboard.seeds import (
     salt_sha256,
     seeds_for,
 )
-from racebench.records import MAX_PUBLIC_EPISODES, InvalidRecordError, name_of, read_record, seal, validate_record
+from racebench.records import (
+    MAX_PUBLIC_EPISODES,
+    RECORDS_FILE,
+    InvalidRecordError,
+    name_of,
+    read_folder,
+    seal,
+    validate_record,
+)
 
 ENV = "RaceObs-S-Level1-v0"  # no obstacles: hover runs fast
 SALT = "f3c1a9e07b5d4c2e8a6f1b3d5e7c9a0b"
@@ -71,13 +79,12 @@ def test_private_evaluation_records_the_set_and_the_salt_hash_not_the_salt(
     out = tmp_path / "private"
     assert cli.main(["evaluate", "--agent", "hover", "--envs", ENV, "--episodes", "2", "--seed-set", "private",
                      "--out", str(out)]) == 0  # fmt: skip
-    paths = sorted((out / "records").glob("*.json"))
-    assert len(paths) == 2
-    records = [read_record(p) for p in paths]
+    records = read_folder(out).sorted_records()
+    assert len(records) == 2
     assert sorted(r["seed"] for r in records) == sorted(private_seeds(SALT, 2))
     assert {r["seed_set"] for r in records} == {"private"}
     assert {r["seed_salt_sha256"] for r in records} == {salt_sha256(SALT)}
-    assert all(SALT not in p.read_text() for p in [*paths, out / "episodes.csv"])
+    assert all(SALT not in p.read_text() for p in [out / RECORDS_FILE, out / "episodes.csv"])
     assert len(load_records(out)) == 2
     # Resumed with the same salt; refused with another salt or the public set (one folder, one seed set).
     assert Evaluator("hover", [ENV], episodes=2, out_dir=out, seed_set="private").pending() == []
@@ -99,4 +106,4 @@ def test_private_evaluation_records_the_set_and_the_salt_hash_not_the_salt(
     ):
         with pytest.raises(InvalidRecordError):
             validate_record(forged)
-    assert validate_record(record, paths[[read_record(p) for p in paths].index(record)].name) == record
+    assert validate_record(record, name_of(record)) == record

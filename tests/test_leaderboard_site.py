@@ -10,9 +10,8 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
-from leaderboard_fixtures import GC_AGENT, add, evaluate, make_repo, write_hover_onnx, write_records
+from leaderboard_fixtures import GC_AGENT, SALT, add, evaluate, make_key, make_repo, write_hover_onnx, write_records
 
 from racebench import cli
 from racebench.leaderboard.entries import MAIN_IDS
@@ -78,9 +77,15 @@ def parse(path: Path) -> Page:
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Entries with chosen counts: strong (9/10 a track), weak (2/10), a one-track entry, a verified ONNX, refs."""
+    """Entries with chosen counts: strong (9/10 a track), weak (2/10), a one-track entry, a signed ONNX, refs."""
+    from racebench.leaderboard.entries import load_entries
+    from racebench.leaderboard.signing import sign_entry
+    from racebench.leaderboard.site import build_site
+
     root = tmp_path_factory.mktemp("repo")
-    board = make_repo(root)
+    keys = tmp_path_factory.mktemp("keys")  # outside the repository, as the maintainers' secrets are
+    key, pem, fingerprint = make_key(keys)
+    board = make_repo(root, public_key_pem=pem)
     res = root / "results"
     onnx_a, onnx_b = write_hover_onnx(root / "p" / "a.onnx"), write_hover_onnx(root / "p" / "b.onnx")
     onnx_b.write_bytes(onnx_b.read_bytes() + b"")  # same graph, other file: the ids below are by path
@@ -90,16 +95,22 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
     for env_id in MAIN_IDS:
         write_records(res / "strong", strong_spec, env_id, 9, 10, lap=6.0)
         write_records(res / "weak", weak_spec, env_id, 2, 10, lap=5.0)
-        write_records(res / "verified", str(onnx_a), env_id, 5, 10, seed_set="private")
+        write_records(res / "verified", str(onnx_a), env_id, 2, 10)
+        write_records(keys / "private" / "verified-onnx-all", str(onnx_a), env_id, 5, 10, seed_set="private")
         write_records(res / "planner", "planner", env_id, 10, 10, lap=7.0)
+    for variant, (strong_k, weak_k) in {"Density5": (8, 1), "GateShift1.0": (6, 3)}.items():
+        write_records(res / "strong", strong_spec, f"RaceObs-S-{variant}-v0", strong_k, 10)
+        write_records(res / "weak", weak_spec, f"RaceObs-S-{variant}-v0", weak_k, 10)
     write_records(res / "one-track", str(onnx_b), MAIN_IDS[0], 10, 10)
     add(board, strong_spec, "strong", [res / "strong"])
     add(board, weak_spec, "weak", [res / "weak"])
     add(board, str(onnx_a), "verified-onnx", [res / "verified"])
-    add(board, str(onnx_b), "one-track", [res / "one-track"])
+    add(board, {"S": str(onnx_b)}, "one-track", [res / "one-track"])
     add(board, "planner", "planner", [res / "planner"])
+    (entry,) = load_entries(board, ["verified-onnx"])
+    sign_entry(entry, SALT, key, keys / "private", episodes=10)  # the records are there: nothing is flown
     out = root / "site"
-    assert cli.main(["leaderboard", "build", "--leaderboard", str(board), "--out", str(out)]) == 0
+    build_site(board, out, pinned_key_sha256=fingerprint)
     return out
 
 
@@ -117,19 +128,23 @@ def test_ranking_per_tier_with_n_intervals_and_separated_bold(site: Path) -> Non
     page = parse(site / "index.html")
     ranked = page.tables["ranking-self-reported"][1:]
     assert [row[1][0].split()[0] for row in ranked] == ["strong", "weak"]
+    assert ranked[0][2][0].startswith("90.0 % lap ")  # the rank key is a column of its own
     low, high = wilson_interval(9, 10)
-    assert ranked[0][2][0] == f"90 % [{100 * low:.0f}–{100 * high:.0f}] 9/10"
-    assert ranked[0][5][0].endswith("27/30")
-    # Circle, J, pooled: 9/10 [60–98] against 2/10 [6–51] is separated, so bold; on S the unranked one-track
+    assert ranked[0][3][0].startswith(f"90 % [{100 * low:.0f}–{100 * high:.0f}] 9/10")
+    # Circle and J: 9/10 [60–98] against 2/10 [6–51] is separated, so bold; on S the unranked one-track
     # entry's 10/10 [72–100] overlaps it, so not bold. The weak row never.
-    assert [bold for _, bold in ranked[0][2:6]] == [False, True, True, True]
+    assert [bold for _, bold in ranked[0][3:6]] == [False, True, True]
     assert not any(bold for _, bold in ranked[1])
+    assert ranked[0][6][0] == "one policy for all" and ranked[0][7][0] == "no"  # cross-track, teacher
+    assert ranked[0][8][0] == "steps unknown, wall clock unknown a test machine"  # no summary.json, none declared
     unranked = page.tables["unranked-self-reported"][1:]
     assert [(row[0][0], row[1][0].split()[0]) for row in unranked] == [("–", "one-track")]
-    assert unranked[0][2] == ("100 % [72–100] 10/10", False)  # [72–100] overlaps strong's [60–98]: not bold
+    assert unranked[0][2][0] == "– (1/3 tracks)"
+    assert unranked[0][3][0].startswith("100 % [72–100] 10/10") and not unranked[0][3][1]  # overlaps strong's
     verified = page.tables["ranking-verified"][1:]
     assert [row[1][0].split()[0] for row in verified] == ["verified-onnx"]
-    assert verified[0][8][0] == "private"
+    assert verified[0][3][0].startswith("50 % [24–76] 5/10")  # the signed private numbers, not the public 2/10
+    assert "private seeds" in verified[0][9][0]
     reference = page.tables["table-reference"][1:]
     assert [(row[0][0], row[1][0].split()[0]) for row in reference] == [("–", "planner")]
     assert not any(bold for row in reference for _, bold in row)
@@ -144,7 +159,7 @@ def test_aggregate_statistics_bootstrap_and_the_single_seed_caveat(site: Path) -
     assert data["one-track"]["aggregate"] is None  # one track: no aggregate over tracks to bootstrap
     rows = {row[0][0]: row for row in page.tables["aggregate"][1:]}
     assert set(rows) == {"strong", "weak", "verified-onnx", "planner"}
-    assert "one training run" in rows["strong"][4][0]
+    assert "one training run per policy" in rows["strong"][4][0]
     assert "single training run (one training seed)" in (site / "index.html").read_text()
 
 
@@ -179,24 +194,37 @@ def test_probability_of_improvement_is_mann_whitney_u_over_n_m() -> None:
 
 
 def test_paper_tables_bold_only_where_intervals_separate(site: Path) -> None:
-    from racebench.leaderboard.site import paper_table_html
+    from types import SimpleNamespace
+
+    from racebench.leaderboard.entries import Cell
+    from racebench.leaderboard.site import Row, table_ii_html
 
     # On the fixture site no SR interval is separated from every rival's (strong's [60–98] meets verified's).
     table = parse(site / "index.html").tables["table-ii"]
     assert len(table) == 1 + 5 and not any(bold for row in table[1:] for _, bold in row)
     assert ("90 [60–98]", False) in [row[3] for row in table[1:]]  # strong's SR on S
-    rows = []
-    for agent, privileged, k in (("good", False, 10), ("bad", False, 0), ("ref", True, 10), ("mid", False, 6)):
-        low, high = wilson_interval(k, 10)
-        rows.append({"agent": agent, "privileged": privileged, "env_id": "RaceObs-S-v0", "track": "S",
-                     "variant": "default", "n": 10, "successes": k, "success_rate": k / 10, "sr_ci_low": low,
-                     "sr_ci_high": high, "lap_time_mean": 5.0, "lap_time_median": 5.0,
-                     "lap_time_std": 0.1})  # fmt: skip
-    separated = parse_html(paper_table_html(pd.DataFrame(rows[:3]), "II"))
+    rows = [
+        Row(SimpleNamespace(name=name), tier, {"RaceObs-S-v0": Cell("RaceObs-S-v0", "public", 10, k, (5.0,) * k)})
+        for name, tier, k in (("good", "self-reported", 10), ("bad", "self-reported", 0), ("ref", "reference", 10),
+                              ("mid", "self-reported", 6))
+    ]  # fmt: skip
+    separated = parse_html(table_ii_html(rows[:3]))
     sr_on_s = sorted(cells[3] for cells in separated[1:])  # good, bad and the privileged ref
     assert sr_on_s == [("0 [0–28]", False), ("100 [72–100]", False), ("100 [72–100]", True)]  # ref never bold
-    overlapping = parse_html(paper_table_html(pd.DataFrame([rows[0], rows[3]]), "II"))
+    overlapping = parse_html(table_ii_html([rows[0], rows[3]]))
     assert not any(b for cells in overlapping[1:] for _, b in cells)  # 10/10 [72–100] meets 6/10 [31–83]
+
+
+def test_table_iv_is_one_table_per_track_and_table_iii_says_why_it_is_empty(site: Path) -> None:
+    page = parse(site / "index.html")
+    text = (site / "index.html").read_text()
+    s_table = page.tables["table-iv-s"]
+    assert len(s_table) == 1 + 2  # strong and weak: the only methods flown on S's variants
+    strong = s_table[1]
+    assert len(strong) == 8 and strong[3] == ("80 [49–94]", True) and strong[7] == ("60 [31–83]", False)
+    assert [cell[0] for cell in strong[:3]] == ["–", "–", "–"]  # densities 2-4 not flown
+    assert "table-iv-circle" not in page.tables and "No method was flown on the 3D Circle track" in text
+    assert "No ablation entries yet" in text and "table-iii" not in page.tables
 
 
 def test_entry_pages_show_trajectory_plots_and_on_demand_videos(tmp_path: Path, monkeypatch) -> None:
@@ -242,7 +270,7 @@ def test_the_ranking_weighs_each_track_the_same(tmp_path: Path) -> None:
     assert cli.main(["leaderboard", "build", "--leaderboard", str(board), "--out", str(out)]) == 0
     ranked = parse(out / "index.html").tables["ranking-self-reported"][1:]
     assert [row[1][0].split()[0] for row in ranked] == ["even", "own"]
-    assert ranked[1][5][0].endswith("100/120")  # the pooled column still shows every episode
+    assert ranked[1][2][0].startswith("33.3 %") and ranked[0][2][0].startswith("50.0 %")  # the key: mean of tracks
 
 
 def parse_html(text: str) -> list:
@@ -256,8 +284,11 @@ def test_entry_pages_show_metadata_and_every_cell(site: Path) -> None:
     page = parse(site / "entries" / "strong.html")
     text = (site / "entries" / "strong.html").read_text()
     assert "A. Tester" in text and "self-reported" in text and "training_seeds" in text
+    assert "strong: a test policy" in text  # the one-line description
     cells = page.tables["cells"][1:]
-    assert [row[0][0] for row in cells] == list(MAIN_IDS) and all(row[2][0] == "10" for row in cells)
+    assert [row[1][0] for row in cells][:3] == list(MAIN_IDS) and all(row[4][0] == "10" for row in cells)
+    signed = parse(site / "entries" / "verified-onnx.html").tables["signed"][1:]
+    assert [(row[1][0], row[2][0].split(" ", 4)[-1]) for row in signed] == [(i, "5/10") for i in MAIN_IDS]
 
 
 def console_messages(url: str) -> list[str]:

@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
-from leaderboard_fixtures import ENV, SALT, add, evaluate, forge_successes, make_repo
+from leaderboard_fixtures import ENV, SALT, add, evaluate, folder_records, forge_successes, make_repo, rewrite_records
 
 from racebench import cli
 from racebench.leaderboard.entries import Cell, load_entry
 from racebench.leaderboard.seeds import SALT_ENV
-from racebench.leaderboard.verify import LAP_ABS_TOL_S, check_cell, lap_tolerance, verify_entry
-from racebench.records import env_facts, name_of, seal
+from racebench.leaderboard.verify import LAP_ABS_TOL_S, REPLAYED_FIELDS, check_cell, lap_tolerance, verify_entry
+from racebench.records import env_facts, seal
 from racebench.statistics import detectable_doctoring
 
 
@@ -66,15 +65,49 @@ def test_verify_checks_lap_times_and_the_cli_exits_nonzero(repo: Path, tmp_path:
     assert cli.main(argv) == 0
     # Doctor the planner's laps 2 s faster: each record stays consistent (its lap lies in its last step).
     dt = env_facts(ENV)["control_dt"]
-    for path in (repo.parents[1] / "results" / "planner" / "records").glob("*.json"):
-        record = json.loads(path.read_text())
-        steps = record["steps"] - int(round(2.0 / dt))
-        path.write_text(json.dumps(seal({**record, "steps": steps, "lap_time": steps * dt})))
+    steps_off = int(round(2.0 / dt))
+    rewrite_records(
+        repo.parents[1] / "results" / "planner",
+        lambda r: seal({**r, "steps": r["steps"] - steps_off, "lap_time": (r["steps"] - steps_off) * dt}),
+    )
     with pytest.raises(SystemExit, match=r"^racebench leaderboard verify: 1 of 1 cells failed$"):
         cli.main(argv)
     check = verify_entry(load_entry(repo / "planner"), tmp_path / "replay", episodes=3)[0]
     assert check.count_ok and not check.lap_ok
     assert check.lap_replayed - check.lap_committed == pytest.approx(2.0, abs=0.02)
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        pytest.param(lambda r, dt: {"steps": r["steps"] + 5, "lap_time": (r["steps"] + 5) * dt}, id="lap 0.1 s slower"),
+        pytest.param(lambda r, dt: {"success": False, "lap_time": None, "crashed": True, "crash_reason": "gate:3",
+                                    "gates_passed": 3, "steps": r["steps"] - 10}, id="crash at the last gate"),
+    ],
+)  # fmt: skip
+def test_a_deterministic_builtin_is_verified_episode_by_episode(repo: Path, tmp_path: Path, edit, monkeypatch) -> None:
+    """One planner episode edited to another plausible outcome: the count and mean-lap checks cannot see it."""
+    folder = repo.parents[1] / "results" / "planner"
+    record = folder_records(folder)[0]
+    assert record["success"]
+    edited = seal({**record, **edit(record, env_facts(ENV)["control_dt"])})
+    rewrite_records(folder, lambda r: edited if r == record else r)
+    check = verify_entry(load_entry(repo / "planner"), tmp_path / "replay")[0]
+    assert check.count_ok and check.lap_ok  # 2 or 3 of 3 against 3 of 3; laps within 0.2 s
+    assert check.episodes_compared == 3 and not check.episodes_ok and not check.ok
+    (line,) = check.mismatches  # the other two episodes replay as recorded
+    diff = [f"{k} {edited[k]!r} → {record[k]!r}" for k in REPLAYED_FIELDS if edited[k] != record[k]]
+    assert line == f"seed {record['seed']}: {', '.join(diff)}"
+    assert "FAIL (episodes)" in check.line() and line in check.line()
+    monkeypatch.chdir(repo.parents[1])
+    with pytest.raises(SystemExit, match=r"^racebench leaderboard verify: 1 of 1 cells failed$"):
+        cli.main(["leaderboard", "verify", "--entry", "planner", "--out", str(tmp_path / "replay")])
+
+
+def test_a_faithful_deterministic_entry_replays_every_episode(repo: Path, tmp_path: Path) -> None:
+    checks = verify_entry(load_entry(repo / "hover"), tmp_path / "replay")
+    assert [(c.episodes_compared, c.mismatches, c.ok) for c in checks] == [(8, (), True)]
+    assert "episodes 8/8 replayed as recorded" in checks[0].line()
 
 
 def test_private_cells_need_the_salt_they_were_made_with(tmp_path: Path, monkeypatch) -> None:
@@ -91,10 +124,9 @@ def test_private_cells_need_the_salt_they_were_made_with(tmp_path: Path, monkeyp
     checks = verify_entry(entry, tmp_path / "replay", episodes=1)
     assert [(c.seed_set, c.committed, c.replayed, c.ok) for c in checks] == [("private", (0, 2), (0, 1), True)]
     # A private record moved to another seed of the range (re-sealed, renamed): only the salt can tell.
-    path = sorted((tmp_path / "results" / "hover-private" / "records").glob("*.json"))[0]
-    moved = seal({**json.loads(path.read_text()), "seed": 10**12 + 12345})
-    path.unlink()
-    (path.parent / name_of(moved)).write_text(json.dumps(moved))
+    first = folder_records(tmp_path / "results" / "hover-private")[0]
+    moved = seal({**first, "seed": 10**12 + 12345})
+    rewrite_records(tmp_path / "results" / "hover-private", lambda r: moved if r == first else r)
     entry = load_entry(board / "hover")  # in range, so valid without the salt
     with pytest.raises(ValueError, match="none picked"):
         verify_entry(entry, tmp_path / "replay")

@@ -373,10 +373,19 @@ def test_impossible_layout_raises_runtime_error() -> None:
         ({"box_half_choices": (0.0,)}, "box_half_choices"),
         ({"grid_resolution": 0.0}, "grid_resolution"),
         ({"max_attempts": 0}, "max_attempts"),
+        ({"max_attempts": 10**9}, "max_attempts"),
+        ({"density": 10**6}, "density"),
+        ({"gate_shift": 1e6}, "gate_shift"),
+        ({"gate_shift": 0.5, "gate_shift_z": 1e6}, "gate_shift_z"),
+        ({"gate_shift": 1.5}, "gate_shift_z"),
+        ({"drone_radius": float("inf")}, "drone_radius"),
+        ({"drone_radius": 0.5}, "drone_radius"),
+        ({"grid_resolution": 1e-4}, "grid_resolution"),
+        ({"grid_resolution": float("nan")}, "grid_resolution"),
     ],
 )
 def test_constructor_validation_names_the_parameter(kwargs: dict, name: str) -> None:
-    with pytest.raises(ValueError, match=name):
+    with pytest.raises(ValueError, match=f"^{name} must"):
         ObstacleGenerator(_track("S"), **kwargs)
 
 

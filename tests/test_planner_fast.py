@@ -273,7 +273,7 @@ def test_a_thrust_budget_below_gravity_is_refused_at_planning(s_env):
 
 
 def test_planner_fast_sweep_settings_parse_none_only_where_a_stage_can_be_off():
-    path = Path(__file__).resolve().parents[1] / "baselines" / "planner_fast_sweep.py"
+    path = Path(__file__).resolve().parents[1] / "scripts" / "planner_fast_sweep.py"
     spec = importlib.util.spec_from_file_location("planner_fast_sweep", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -197,3 +197,26 @@ def test_a_fine_tuning_is_drawn_after_the_student_it_started_from(tmp_path: Path
     ]
     assert plots.offsets_after_students([tuned], progresses[3:]) == [(0.0, 0.0)]  # its student not given
     assert plots.plot_success_curves(runs, tmp_path / "chain.png", dpi=60).is_file()
+
+
+def test_track_figure_draws_every_result_directory_by_agent(tmp_path: Path, capsys) -> None:
+    both = [str(ROOT / "results" / name) for name in ("planner", "planner-fast")]
+    hover = str(ROOT / "results" / "hover")  # no saved trajectories: named, not silently dropped
+    args = ["-q", "plot", *both, hover, "--track-env", "RaceObs-S-v0", "--format", "svg", "--dpi", "60"]
+    assert cli.main([*args, "--out", str(tmp_path)]) == 0
+    svg = (tmp_path / "track_RaceObs-S-v0.svg").read_text()
+    for agent in ("planner", "planner-fast"):  # a legend entry each, in its own colour
+        assert f"{agent} (1/1 successful)" in svg
+    assert f"no saved trajectories in {hover}" in capsys.readouterr().err
+
+
+def test_agents_without_density_or_gate_shift_results_are_named(summary, tmp_path: Path, monkeypatch, capsys) -> None:
+    partial = summary[
+        ~((summary["agent"] == "hover") & summary["variant"].str.startswith("Density"))
+        & ~((summary["agent"] == "planner") & summary["variant"].str.startswith("GateShift"))
+    ]
+    monkeypatch.setattr(cli, "_summaries", lambda results, command: partial)
+    assert cli.main(["-q", "plot", "unused", "--out", str(tmp_path), "--format", "svg", "--dpi", "60"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert "success_vs_density.svg: no obstacle density results of hover; left out" in err
+    assert "success_vs_gate_shift.svg: no gate shift results of planner; left out" in err

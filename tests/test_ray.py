@@ -16,7 +16,7 @@ import pytest
 from racebench.cli import main
 from racebench.evaluation import EVAL_SEED_BASE, Evaluator, load_records
 from racebench.ray_backend import INSTALL_HINT, RayOptions
-from racebench.records import read_record
+from racebench.records import read_folder
 
 
 def test_ray_backend_without_ray_says_how_to_install_it(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
@@ -49,9 +49,9 @@ def test_ray_evaluation_writes_the_records_of_the_local_backend(ray_cluster, tmp
     Evaluator("planner", envs, episodes=2, out_dir=tmp_path / "local").run(progress=False)
     ray_eval = Evaluator("planner", envs, episodes=2, out_dir=tmp_path / "ray", backend="ray")
     summary = ray_eval.run(progress=False)
-    local = {p.name: p.read_bytes() for p in (tmp_path / "local" / "records").glob("*.json")}
-    remote = {p.name: p.read_bytes() for p in (tmp_path / "ray" / "records").glob("*.json")}
-    assert len(local) == 4 and sorted(remote) == sorted(local)  # same record files, same names
+    local, remote = (read_folder(tmp_path / side).lines for side in ("local", "ray"))
+    assert len(local) == 4 and sorted(remote) == sorted(local)  # same episode slots
+    assert not list((tmp_path / "ray").glob("records-*.jsonl"))  # the workers' and the driver's shards merged
     outcome = ["success", "lap_time", "crashed", "crash_reason", "gates_passed", "return", "steps", "error"]
     for name, data in local.items():
         mine, theirs = json.loads(data), json.loads(remote[name])
@@ -113,9 +113,7 @@ def test_a_killed_ray_worker_is_retried_without_losing_or_duplicating_a_record(r
     seeds = [EVAL_SEED_BASE + i for i in range(4)]
     # The retried task re-flew only the killed episode: the one recorded before the kill was kept.
     assert begun == Counter({seeds[0]: 1, seeds[1]: 2, seeds[2]: 1, seeds[3]: 1})
-    records = sorted((out / "records").iterdir())
-    assert len(records) == 4 and all(p.suffix == ".json" for p in records)  # no temporary file left behind
-    assert sorted(read_record(p)["seed"] for p in records) == seeds
-    assert not (out / "invalid").exists()
+    assert sorted(p.name for p in out.iterdir()) == ["episodes.csv", "records.jsonl", "summary.csv"]  # merged
+    assert sorted(json.loads(line)["seed"] for line in (out / "records.jsonl").read_text().splitlines()) == seeds
     frame = load_records(out)
     assert frame["seed"].tolist() == seeds and not frame["crash_reason"].isin(["agent_error", "env_error"]).any()

@@ -82,6 +82,11 @@ def test_bad_sweep_files_are_named(tmp_path: Path) -> None:
         ({"configs": ["tiny.yaml", "tiny.yaml"]}, "two runs would share the folder 'tiny-S-seed0'"),
         ({"overrides": {"batch_size": 100}}, "multiple of batch_size"),
         ({"eval_suite": "hard"}, r"eval_suite must be one of \['density', 'gates', 'main', 'paper'\], not 'hard'"),
+        ({"configs": [{"config": "tiny.yaml", "tracks": ["Q"]}]}, "track 'Q' is not one of"),
+        ({"configs": [{"config": "tiny.yaml", "seeds": []}]}, "seeds of 'tiny.yaml' must be a non-empty list"),
+        ({"eval_episodes_other": 0}, "eval_episodes_other must be an integer >= 1"),
+        ({"validation_every": 100}, "validation_every must be a multiple of checkpoint_every"),
+        ({"evaluate_policy_only": "yes"}, "evaluate_policy_only must be true or false"),
     ]:
         with pytest.raises(SystemExit, match=message) as exit_info:
             main(["sweep", str(write_sweep(tmp_path, **changes))])
@@ -140,6 +145,28 @@ def test_a_local_sweep_finishes_is_skipped_when_rerun_and_resumes_a_killed_run(
     check_finished(out, RUNS)
 
 
+def test_a_sweep_unpickles_only_the_checkpoints_its_runs_wrote(tmp_path: Path) -> None:
+    """A checkpoint dropped into a run folder (not in its written.json) is refused, for training and evaluation."""
+    from payloads import evil_sb3_zip
+
+    path = write_sweep(tmp_path, tracks=["S"])
+    run, marker = tmp_path / "out" / "tiny-S-seed0", tmp_path / "ran"
+    (run / "checkpoints").mkdir(parents=True)
+    evil_sb3_zip(run / "checkpoints" / "tiny_128_steps.zip", marker)
+    rows = run_sweep(load_sweep(path))
+    assert rows[0]["status"].startswith("failed: checkpoint") and "--trust-code" in rows[0]["status"]
+    # Killed while evaluating, and its summary now names a planted checkpoint: the evaluation refuses it too.
+    (run / "checkpoints" / "tiny_128_steps.zip").unlink()
+    evil = evil_sb3_zip(run / "tiny-S.zip", marker)
+    (run / "summary.json").write_text(json.dumps({"timesteps": 256, "checkpoint": str(evil)}))
+    rows = run_sweep(load_sweep(path))
+    assert rows[0]["status"].startswith("failed: agent") and "--trust-code" in rows[0]["status"]
+    assert not marker.exists()
+    with pytest.raises(SystemExit, match="1 of 1 runs failed"):
+        main(["sweep", str(path)])
+    assert not marker.exists()
+
+
 def test_eval_suite_flies_each_run_on_its_tracks_ids_and_extends_a_finished_run(tmp_path: Path) -> None:
     """``eval_suite: density``: every run's policy on its own track's ids of that suite, main id first; a run
     evaluated on the main id alone is evaluated on the rest without training again; Table IV from the runs."""
@@ -160,6 +187,40 @@ def test_eval_suite_flies_each_run_on_its_tracks_ids_and_extends_a_finished_run(
     assert [row["status"] for row in run_sweep(load_sweep(path))] == ["skipped", "skipped"]
     table = make_table(read_summaries([out / run / "eval" for run in RUNS]), "IV")
     assert "tiny-seed0 S-shaped" in table and "tiny-seed0 J-shaped" in table and "tiny-seed0 3D Circle" in table
+
+
+def test_entries_with_their_own_tracks_and_seeds_run_in_the_files_order_one_at_a_time(tmp_path: Path) -> None:
+    """A config listed twice with other tracks or seeds (a campaign's extra seeds) plans its runs in the file's
+    order; --max-runs 1 trains the next unfinished one only; the main id gets eval_episodes, the rest
+    eval_episodes_other."""
+    configs = [{"config": "tiny.yaml", "tracks": ["J"]}, {"config": "tiny.yaml", "tracks": ["S"], "seeds": [1, 2]}]
+    path = write_sweep(tmp_path, configs=configs, eval_suite="density", eval_episodes=2, eval_episodes_other=1,
+                       evaluate_policy_only=True, validation_every=128, validation_episodes=2)  # fmt: skip
+    sweep = load_sweep(path)
+    assert [run.label for run in sweep.runs] == ["tiny-J-seed0", "tiny-S-seed1", "tiny-S-seed2"]
+    out = tmp_path / "out"
+    assert main(["sweep", str(path), "--max-runs", "1"]) == 0
+    assert [p.name for p in out.iterdir() if p.is_dir()] == ["tiny-J-seed0"]
+    assert pd.read_csv(out / "sweep.csv")["status"].tolist() == ["done", "not started", "not started"]
+    counts = load_records(out / "tiny-J-seed0" / "eval").groupby("env_id").size()
+    assert counts["RaceObs-J-v0"] == 2 and len(counts) == 5 and set(counts.drop("RaceObs-J-v0")) == {1}
+    summary = json.loads((out / "tiny-J-seed0" / "summary.json").read_text())
+    assert summary["eval"]["n"] == 2 and summary["policy"].endswith("tiny-J-seed0/policy/tiny-J.zip")
+    records = load_records(out / "tiny-J-seed0" / "eval")
+    assert set(records["policy_source"]) == {summary["policy"]}  # the policy-only file that gets committed
+    curve = pd.read_csv(out / "tiny-J-seed0" / "validation_curve.csv")
+    assert curve["timesteps"].tolist() == [128, 256] and set(curve["episodes"]) == {2}
+    # Incremental: a kept row is not flown again, a missing multiple is (a run spanning sessions keeps its points).
+    from racebench.paper import validation_curve
+
+    curve.loc[0, "successes"] = 99  # a marker: flown again, it would be 0, 1 or 2
+    curve.iloc[:1].to_csv(out / "tiny-J-seed0" / "validation_curve.csv", index=False)
+    again = validation_curve(out / "tiny-J-seed0", every=128, episodes=2)
+    assert again["timesteps"].tolist() == [128, 256] and again["successes"].iloc[0] == 99
+    rows = run_sweep(load_sweep(path), max_runs=1)
+    assert [row["status"] for row in rows] == ["skipped", "done", "not started"]
+    with pytest.raises(SystemExit, match="--max-runs is an integer >= 1, for the local backend"):
+        main(["sweep", str(path), "--max-runs", "0"])
 
 
 def test_a_sweep_runs_a_dagger_config_and_resumes_it_from_its_folder(tmp_path: Path) -> None:
@@ -369,6 +430,28 @@ def test_the_shipped_paper_sweep_loads() -> None:
     assert all(run.steps == 100_000_000 and run.cpus == run.config.num_processes for run in sweep.runs)
     # Tables II-IV from the runs alone: each on its track's 9 ids of the paper suite
     assert all(run.eval_envs == track_envs("paper", run.track) and len(run.eval_envs) == 9 for run in sweep.runs)
+
+
+def test_the_shipped_campaign_plans_the_24_runs_of_the_paper_tables_in_order() -> None:
+    """Issue 48's campaign: seed 0 of the six paper configs on the three tracks, vision-ppo on J and Circle first,
+    then seeds 1-2 of vision-no-gru on S and of vision-ppo on J and Circle; 4M steps; 9 ids, 100 + 8 x 50 episodes."""
+    sweep = load_sweep(Path(__file__).parents[1] / "baselines" / "sweeps" / "campaign-4m.yaml")
+    labels = [run.label for run in sweep.runs]
+    configs = ["state-ppo", "vision-com", "vision-no-avoid", "vision-one-step", "vision-no-gru"]
+    expected = [
+        "vision-ppo-J-seed0", "vision-ppo-Circle-seed0",
+        *[f"{config}-{track}-seed0" for config in configs for track in ("S", "J", "Circle")],
+        "vision-ppo-S-seed0", "vision-no-gru-S-seed1", "vision-no-gru-S-seed2",
+        "vision-ppo-J-seed1", "vision-ppo-J-seed2", "vision-ppo-Circle-seed1", "vision-ppo-Circle-seed2",
+    ]  # fmt: skip
+    assert labels == expected and len(labels) == 24
+    assert {run.steps for run in sweep.runs} == {4_000_000} and {run.device for run in sweep.runs} == {"cpu"}
+    assert all(run.eval_envs == track_envs("paper", run.track) and len(run.eval_envs) == 9 for run in sweep.runs)
+    assert {(run.eval_episodes, run.eval_episodes_other) for run in sweep.runs} == {(100, 50)}
+    assert {(run.validation_every, run.validation_episodes, run.evaluate_policy_only) for run in sweep.runs} == {
+        (1_000_000, 100, True)
+    }
+    assert all(run.config.name == run.label.split(f"-{run.track}-")[0] for run in sweep.runs)
 
 
 def test_the_shipped_teacher_student_sweep_chains_each_student_to_its_fine_tuning() -> None:

@@ -35,10 +35,12 @@ from racebench.evaluation import (
 )
 from racebench.records import (
     RECORD_FIELDS,
+    RECORDS_FILE,
     InvalidRecordError,
     name_of,
-    read_record,
+    read_folder,
     record_digest,
+    record_line,
     seal,
     validate_record,
 )
@@ -102,7 +104,7 @@ def test_a_folder_that_came_to_hold_two_policies_is_not_summarised(tmp_path: Pat
     tables_before = [(out / name).read_text() for name in ("episodes.csv", "summary.csv")]
     with pytest.raises(MixedResultsError, match="come from 2 policies"):
         late.run(progress=False)  # its record lands beside the first policy's
-    assert len(list((out / "records").glob("*.json"))) == 2  # both finished records kept, neither counted
+    assert len(read_folder(out).records) == 2  # both finished records kept, neither counted
     assert [(out / name).read_text() for name in ("episodes.csv", "summary.csv")] == tables_before
     with pytest.raises(MixedResultsError, match="come from 2 policies"):
         summarize(load_records(out))
@@ -121,10 +123,19 @@ def test_identities(tmp_path: Path) -> None:
     assert policy_identity("planner") == builtin_identity("planner")
     assert policy_identity("planner").privileged and not policy_identity("hover").privileged
     assert policy_identity("planner").sha256 != policy_identity("follow").sha256
+    import onnx
+    from onnx import TensorProto, helper
+
     a, b = tmp_path / "x.onnx", tmp_path / "x.zip"
-    a.write_bytes(b"one")
+    value = helper.make_tensor_value_info("x", TensorProto.FLOAT, [1])
+    graph = helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "g", [value],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])])  # fmt: skip
+    onnx.save(helper.make_model(graph), a)
     b.write_bytes(b"one")
     assert policy_identity(str(a)).kind == "onnx" and policy_identity(str(b)).kind == "sb3"
+    (tmp_path / "bad.onnx").write_bytes(b"one")  # the identity reads the graph for external data: corrupt is named
+    with pytest.raises(AgentLoadError, match="bad.onnx"):
+        policy_identity(str(tmp_path / "bad.onnx"))
     spec = write_agent(tmp_path / "agent.py", 0.0)
     assert policy_identity(spec).sha256 == policy_identity(spec).sha256
     write_agent(tmp_path / "agent.py", 0.5)
@@ -141,17 +152,15 @@ def test_the_summary_is_what_was_asked(tmp_path: Path) -> None:
 
 def test_records_and_csvs_are_world_readable(tmp_path: Path) -> None:
     Evaluator("hover", [ENV], episodes=1, out_dir=tmp_path).run(progress=False)
-    for path in [*tmp_path.glob("records/*.json"), tmp_path / "episodes.csv", tmp_path / "summary.csv"]:
+    for path in [tmp_path / RECORDS_FILE, tmp_path / "episodes.csv", tmp_path / "summary.csv"]:
         assert stat.S_IMODE(path.stat().st_mode) == 0o644, path
 
 
 def test_builtins_replay_bit_identically_on_one_machine(tmp_path: Path) -> None:
     for out in ("a", "b"):
         Evaluator("planner", [ENV, "RaceObs-S-v0"], episodes=1, out_dir=tmp_path / out).run(progress=False)
-    a = sorted((tmp_path / "a" / "records").iterdir())
-    b = sorted((tmp_path / "b" / "records").iterdir())
-    assert [p.name for p in a] == [p.name for p in b]
-    assert [p.read_bytes() for p in a] == [p.read_bytes() for p in b]
+    a, b = ((tmp_path / out / RECORDS_FILE).read_bytes() for out in ("a", "b"))
+    assert a == b and a.count(b"\n") == 2
 
 
 # ---------------------------------------------------------------- validation
@@ -168,7 +177,7 @@ def hover_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def planner_record(tmp_path_factory: pytest.TempPathFactory) -> dict:
     out = tmp_path_factory.mktemp("planner")
     Evaluator("planner", [ENV], episodes=1, out_dir=out).run(progress=False)
-    return json.loads(next((out / "records").glob("*.json")).read_text())
+    return json.loads((out / RECORDS_FILE).read_text())
 
 
 def test_a_fresh_record_is_valid(planner_record: dict) -> None:
@@ -184,6 +193,7 @@ FORGERIES = {
     "success with a crash": {"crashed": True, "crash_reason": "obstacle:0"},
     "failure with a lap time": {"success": False},
     "failure that stopped early": {"success": False, "lap_time": None},
+    "crash after the last gate": {"success": False, "lap_time": None, "crashed": True, "crash_reason": "ground"},
     "crash without a reason": {"success": False, "lap_time": None, "crashed": True},
     "error without a reason": {"success": False, "lap_time": None, "error": "boom"},
     "unknown crash reason": {"success": False, "lap_time": None, "crashed": True, "crash_reason": "wind"},
@@ -230,21 +240,19 @@ def test_corrupt_and_forged_records_are_named_set_aside_and_rerun(
     hover_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     out = tmp_path / "damaged"
-    (out / "records").mkdir(parents=True)
-    paths = sorted((hover_dir / "records").glob("*.json"))
-    for path in paths:
-        (out / "records" / path.name).write_bytes(path.read_bytes())
-    truncated, garbage, empty, forged = sorted((out / "records").glob("*.json"))
-    truncated.write_text(truncated.read_text()[:40])
-    garbage.write_bytes(b"\x00\xffnot json")
-    empty.write_text("{}")
-    forged.write_text(json.dumps(_forge_hover_success(json.loads(forged.read_text()))))
-    bad = {truncated.name, garbage.name, empty.name, forged.name}
+    out.mkdir()
+    original = (hover_dir / RECORDS_FILE).read_bytes().splitlines(keepends=True)
+    forged = record_line(_forge_hover_success(json.loads(original[3])))
+    (out / RECORDS_FILE).write_bytes(original[0][:40] + b"\n" + b"\x00\xffnot json\n" + b"{}\n" + forged)
+    (out / "records-1-feedbeef.jsonl").write_bytes(original[1][:-30])  # a worker killed mid-write: torn last line
 
     with caplog.at_level(logging.WARNING, logger="racebench"):
         assert load_records(out).empty  # read-only use: left out, never counted
         named = " ".join(r.getMessage() for r in caplog.records)
-    assert all(name in named for name in bad)
+    for line in (1, 2, 3, 4):  # each one-line error names the folder's file, the line and the reason
+        assert f"{out / RECORDS_FILE}:{line}: " in named
+    assert f"{out / RECORDS_FILE}:4: success with 0 of 4 gates" in named
+    assert "records-1-feedbeef.jsonl:1: torn last line" in named
     with pytest.raises(ValueError, match="no valid evaluation records"):
         read_summaries([out])
 
@@ -252,20 +260,20 @@ def test_corrupt_and_forged_records_are_named_set_aside_and_rerun(
     with caplog.at_level(logging.WARNING, logger="racebench"):
         evaluator = Evaluator("hover", [ENV], episodes=4, out_dir=out)
     assert len(evaluator.pending()) == 4
-    assert {p.name for p in (out / "invalid").glob("*.json")} == bad
-    assert "success with 0 of 4 gates" in (out / "invalid" / f"{forged.name}.reason.txt").read_text()
+    assert "torn record line dropped" in caplog.text
+    aside = [json.loads(line) for line in (out / "invalid.jsonl").read_text().splitlines()]
+    assert [a["source"] for a in aside] == [f"{out / RECORDS_FILE}:{n}" for n in (1, 2, 3, 4)]  # the torn one: dropped
+    assert "success with 0 of 4 gates" in aside[3]["reason"] and aside[3]["text"] == forged.decode().strip()
+    assert not list(out.glob("records-*.jsonl"))  # merged: one records file again
     summary = evaluator.run(progress=False)
     assert summary[["n", "successes"]].values.tolist() == [[4, 0]]
-    original = {p.name: json.loads(p.read_text()) for p in paths}
-    for path in (out / "records").glob("*.json"):
-        assert read_record(path) == original[path.name]  # re-run: the same hover episodes
+    assert (out / RECORDS_FILE).read_bytes() == b"".join(original)  # re-run: the same hover episodes, byte for byte
 
 
 def test_tables_never_read_a_summary_back(hover_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "copy"
-    (out / "records").mkdir(parents=True)
-    for path in (hover_dir / "records").glob("*.json"):
-        (out / "records" / path.name).write_bytes(path.read_bytes())
+    out.mkdir()
+    (out / RECORDS_FILE).write_bytes((hover_dir / RECORDS_FILE).read_bytes())
     pd.DataFrame([{"agent": "hover", "env_id": ENV, "success_rate": 0.99, "sr_ci_low": 0.0, "sr_ci_high": 0.1}]).to_csv(
         out / "summary.csv", index=False
     )
@@ -377,8 +385,8 @@ def test_the_readme_first_command_evaluates_what_it_asks(
     table = [line.split() for line in printed.splitlines() if line.strip().startswith("RaceObs-")]
     assert [row[0] for row in table] == ["RaceObs-S-v0", "RaceObs-Circle-v0", "RaceObs-J-v0"]
     assert [row[1] for row in table] == ["10", "10", "10"]
-    written = list((tmp_path / "runs" / "eval").glob("planner-*/records/*.json"))
-    assert len(written) == 30
+    (written,) = (tmp_path / "runs" / "eval").glob(f"planner-*/{RECORDS_FILE}")
+    assert len(read_folder(written.parent).records) == 30
 
 
 def test_cli_errors_are_one_line_and_nonzero(tmp_path: Path) -> None:
@@ -423,8 +431,5 @@ def test_consistency_test_accepts_another_cpus_replay_and_catches_doctoring() ->
 
 def test_records_of_os_level_copies_stay_valid(hover_dir: Path, tmp_path: Path) -> None:
     """A record copied byte for byte into another folder of the same policy is still that policy's record."""
-    target = tmp_path / "records"
-    target.mkdir()
-    for path in (hover_dir / "records").glob("*.json"):
-        (target / path.name).write_bytes(path.read_bytes())
+    (tmp_path / RECORDS_FILE).write_bytes((hover_dir / RECORDS_FILE).read_bytes())
     assert len(load_records(tmp_path)) == 4

@@ -10,11 +10,13 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from payloads import evil_pickle, evil_sb3_zip
 from sb3_contrib.common.recurrent.policies import RecurrentMultiInputActorCriticPolicy
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-from racebench.agents import AgentLoadError, SB3Agent
+from racebench import cli
+from racebench.agents import WRITTEN_FILE, AgentLoadError, SB3Agent, UntrustedCodeError, record_written, written_sha256
 from racebench.evaluation import EVAL_SEED_BASE
 from racebench.registration import CURRICULUM
 from racebench.sb3 import RaceSB3VecEnv
@@ -25,12 +27,16 @@ from racebench.training.train import (
     MultiSceneCallback,
     ThreadsCallback,
     TrainConfig,
+    _load_model,
     _restore_reward_stats,
     _save_atomically,
+    _trusted_reward_stats,
     archive_finished_part,
     load_config,
     make_envs,
     make_model,
+    own_policy_trust,
+    restore_schedules,
     resume_curriculum,
     resume_seed,
     train,
@@ -278,6 +284,20 @@ def test_fused_sequence_pass_equals_sb3_contribs_loop(starts_inside: bool) -> No
     torch.testing.assert_close(h, h_ref, rtol=1e-5, atol=1e-6)
 
 
+def test_a_resumed_model_gets_its_schedules_from_its_config(tmp_path: Path) -> None:
+    """A checkpoint written under another cloudpickle version loads without its pickled schedules (SB3 warns and
+    keeps the class defaults): the resume rebuilds both from the config."""
+    config = small(TrainConfig(name="t", obs_mode="state", learning_rate=(5e-4, 2e-5), clip_range=0.1))
+    env = make_vec_env("RaceObs-S-Level1-v0", n_envs=1, env_kwargs={"obs_mode": "state"}, vec_env_cls=DummyVecEnv)
+    model = make_model(config, env, seed=0, tensorboard=None)
+    model.learning_rate, model.clip_range = 3e-4, 0.2  # what a failed deserialisation leaves (PPO's defaults)
+    model._setup_lr_schedule()
+    restore_schedules(model, config)
+    assert model.lr_schedule(1.0) == pytest.approx(5e-4) and model.lr_schedule(0.0) == pytest.approx(2e-5)
+    assert model.clip_range(0.5) == pytest.approx(0.1)
+    env.close()
+
+
 def test_gru_policy_state_is_carried_and_reset_at_episode_start() -> None:
     config = small(TrainConfig(name="t", obs_mode="state"))
     env = make_vec_env("RaceObs-S-Level1-v0", n_envs=1, env_kwargs={"obs_mode": "state"}, vec_env_cls=DummyVecEnv)
@@ -495,7 +515,7 @@ def test_resume_after_a_killed_run(tmp_path: Path) -> None:
     promoted = {"level": 2, "promotions": [{"level": 2, "timestep": at + 1}]}
     (tmp_path / "curriculum.json").write_text(json.dumps(promoted))
     env = make_envs(config, "S", 0)
-    _restore_reward_stats(env, checkpoints[1])
+    _restore_reward_stats(env, _trusted_reward_stats(checkpoints[1], False, written_sha256(tmp_path)))
     saved = VecNormalize.load(str(checkpoints[1].with_name(f"state-ppo_vecnormalize_{at}_steps.pkl")), env.venv)
     assert env.ret_rms.count == saved.ret_rms.count > 1 and env.ret_rms.var == pytest.approx(saved.ret_rms.var)
     env.close()
@@ -806,3 +826,73 @@ def test_fine_tuning_with_bc_runs_on_depth_and_reports_its_distance(tmp_path: Pa
     config = dataclasses.replace(config, init_from=str(tmp_path / "student.zip"), critic_warmup=0, bc_coef=1.0)
     result = train(config, "S", steps=3 * 4 * 32, seed=3, out=tmp_path / "run", eval_episodes=0)
     assert np.isfinite(result["bc_mse_last"]) and result["bc_mse_last"] >= 0
+
+
+# ------------------------------------------------------- untrusted checkpoints are never unpickled
+
+
+def test_train_resume_refuses_a_pickled_payload(tmp_path: Path) -> None:
+    """``racebench train --resume evil.zip``: one line naming --trust-code, and nothing of the file runs."""
+    marker = tmp_path / "ran"
+    evil = evil_sb3_zip(tmp_path / "evil.zip", marker)
+    argv = ["train", "--config", "state-ppo", "--num-processes", "1", "--steps", "64",
+            "--eval-episodes", "0", "--resume", str(evil), "--out", str(tmp_path / "run")]  # fmt: skip
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    message = str(exc.value.code)
+    assert message.startswith("racebench train: checkpoint") and "--trust-code" in message and "\n" not in message
+    assert not marker.exists()
+    with pytest.raises(AgentLoadError):  # the payload is live: a trusted load runs it
+        _load_model(evil, trust_code=True)
+    assert marker.exists()
+
+
+def test_a_run_trusts_only_what_it_wrote(tmp_path: Path) -> None:
+    """written.json lists every checkpoint and statistics file a run wrote; a resume trusts those and nothing else."""
+    config = small(TrainConfig.from_yaml(BASELINES[0].parent / "state-ppo.yaml"))
+    run = tmp_path / "run"
+    result = train(config, "S", steps=64, out=run, eval_episodes=0, checkpoint_every=1)
+    written = json.loads((run / WRITTEN_FILE).read_text())
+    expected = {"state-ppo-S.zip", "vecnormalize.pkl", *(str(p.relative_to(run)) for p in run.glob("checkpoints/*"))}
+    assert set(written) == expected and len(expected) == 4
+    assert own_policy_trust(run, result["checkpoint"])
+    # Another folder did not write this checkpoint: resuming from it there needs --trust-code.
+    with pytest.raises(UntrustedCodeError, match="--trust-code"):
+        train(config, "S", steps=64, out=tmp_path / "other", resume=result["checkpoint"], eval_episodes=0)
+    # Statistics swapped for a pickle payload are refused, before the checkpoint is loaded.
+    marker = tmp_path / "ran"
+    (run / "vecnormalize.pkl").write_bytes(evil_pickle(marker))
+    with pytest.raises(UntrustedCodeError, match=r"statistics .*vecnormalize\.pkl.*--trust-code"):
+        train(config, "S", steps=64, out=run, resume=result["checkpoint"], eval_episodes=0)
+    with pytest.raises(UntrustedCodeError, match="statistics"):  # nor does the final evaluation read them
+        own_policy_trust(run, result["checkpoint"])
+    assert not marker.exists()
+    # The CLI says it in one line.
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["train", "--config", "state-ppo", "--num-processes", "1", "--steps", "64",
+                  "--eval-episodes", "0", "--resume", result["checkpoint"], "--out", str(run)])  # fmt: skip
+    assert "vecnormalize.pkl" in str(exc.value.code) and "\n" not in str(exc.value.code)
+    assert not marker.exists()
+
+
+def test_own_policy_trust_needs_the_checkpoint_listed(tmp_path: Path) -> None:
+    checkpoint = tmp_path / "model.zip"
+    checkpoint.write_bytes(b"not listed")
+    assert not own_policy_trust(tmp_path, checkpoint) and own_policy_trust(tmp_path, checkpoint, trust_code=True)
+    record_written(tmp_path, checkpoint)
+    assert own_policy_trust(tmp_path, checkpoint)
+    checkpoint.write_bytes(b"changed after it was written")
+    assert not own_policy_trust(tmp_path, checkpoint)
+    (tmp_path / WRITTEN_FILE).write_text("not json")  # a damaged manifest vouches for nothing
+    assert written_sha256(tmp_path) == frozenset()
+
+
+def test_init_from_reads_no_pickled_code(tmp_path: Path) -> None:
+    """``init_from`` reads tensors only: a payload in the zip's data or in its policy.pth never runs."""
+    marker = tmp_path / "ran"
+    evil = evil_sb3_zip(tmp_path / "evil.zip", marker)
+    config = small(TrainConfig.from_yaml(BASELINES[0].parent / "state-ppo.yaml"), init_from=str(evil))
+    with pytest.raises(ValueError, match="init_from: .*evil.zip is not an SB3 checkpoint") as exc:
+        train(config, "S", steps=64, out=tmp_path / "run", eval_episodes=0)
+    assert "\n" not in str(exc.value)
+    assert not marker.exists()

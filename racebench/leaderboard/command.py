@@ -1,4 +1,4 @@
-"""``racebench leaderboard add | verify | build``: the command-line side of :mod:`racebench.leaderboard`."""
+"""``racebench leaderboard add | verify | sign | build``: the command-line side of :mod:`racebench.leaderboard`."""
 
 from __future__ import annotations
 
@@ -13,11 +13,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p_lb = sub.add_parser("leaderboard", help="leaderboard entries: add one, verify them, build the static site")
     lb = p_lb.add_subparsers(dest="leaderboard_command", required=True)
 
-    p_add = lb.add_parser("add", help="create results/leaderboard/<name>/entry.yaml for a policy in the repository")
-    p_add.add_argument("--policy", required=True, help="policy file in the repository (.onnx, .zip, file.py:Class) "
-                       "or a built-in agent (planner, follow, hover, random)")  # fmt: skip
-    p_add.add_argument("--meta", required=True, help="YAML with name, authors, method, link, obs_mode, training_*, "
-                       "hardware (see results/leaderboard/README.md)")  # fmt: skip
+    p_add = lb.add_parser("add", help="create results/leaderboard/<name>/entry.yaml for a method's policies")
+    from racebench.agents import BUILTIN_AGENTS  # light: the built-ins' registry, for the help
+
+    p_add.add_argument("--policy", required=True, action="append", metavar="[TRACK=]POLICY",
+                       help="policy file in the repository (.onnx, .zip, file.py:Class) or a built-in agent "
+                       f"({', '.join(BUILTIN_AGENTS)}); TRACK=POLICY (S, Circle, J) once per track for per-track "
+                       "policies, bare for one policy on every track")  # fmt: skip
+    p_add.add_argument("--meta", required=True, help="YAML with name, description, authors, obs_mode, teacher, "
+                       "config, command, hardware, training_seeds (see docs/leaderboard.md)")  # fmt: skip
     p_add.add_argument("--records", nargs="*", default=[], help="result folders already holding its records")
     p_add.add_argument(
         "--evaluate",
@@ -30,7 +34,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p_add.add_argument("--trust-code", action="store_true", help="allow a .zip or Python policy (runs its code)")
     p_add.add_argument("--leaderboard", default=DEFAULT_LEADERBOARD, help=f"(default {DEFAULT_LEADERBOARD})")
 
-    p_ver = lb.add_parser("verify", help="re-evaluate entries; test each committed success count and lap time")
+    p_ver = lb.add_parser(
+        "verify",
+        help="re-evaluate entries; test each committed success count and lap time "
+        "(a deterministic built-in: each episode)",
+    )
     p_ver.add_argument("--entry", nargs="*", default=None, help="entry names (default: every entry)")
     p_ver.add_argument("--episodes", type=int, default=None, help="replay only the first N seeds of each cell")
     p_ver.add_argument("--out", default="runs/verify", help="where the replays go (default runs/verify; resumable)")
@@ -38,6 +46,23 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p_ver.add_argument("--workers", type=int, default=1, help="evaluation processes (default 1)")
     p_ver.add_argument("--trust-code", action="store_true", help="allow .zip / Python entries outside the shipped ones")
     p_ver.add_argument("--leaderboard", default=DEFAULT_LEADERBOARD, help=f"(default {DEFAULT_LEADERBOARD})")
+
+    p_sign = lb.add_parser(
+        "sign",
+        help="maintainers: fly an entry's ONNX policies on the private seeds ($RACEBENCH_PRIVATE_SALT) and write "
+        "its signed verified.json",
+    )
+    p_sign.add_argument("--entry", required=True, help="entry name")
+    p_sign.add_argument("--key", required=True, help="the maintainers' Ed25519 private key (PKCS#8 PEM)")
+    p_sign.add_argument(
+        "--private-records",
+        required=True,
+        metavar="DIR",
+        help="folder OUTSIDE the repository for the private records (resumable: <DIR>/<entry>-<track>)",
+    )
+    p_sign.add_argument("--episodes", type=int, default=50, help="private episodes per own main id (default 50)")
+    p_sign.add_argument("--workers", type=int, default=1, help="evaluation processes (default 1)")
+    p_sign.add_argument("--leaderboard", default=DEFAULT_LEADERBOARD, help=f"(default {DEFAULT_LEADERBOARD})")
 
     p_build = lb.add_parser("build", help="write the static site (plain HTML/CSS, data embedded)")
     p_build.add_argument("--out", required=True, help="output folder of the site")
@@ -57,6 +82,9 @@ def run(args: argparse.Namespace) -> int:
 
     from racebench.agents import AgentLoadError
     from racebench.leaderboard.entries import EntryError, add_entry, load_config, load_entries
+    from racebench.leaderboard.seeds import SeedSetError
+    from racebench.leaderboard.signing import SignatureError
+    from racebench.yamlfile import yaml_problem
 
     command = f"racebench leaderboard {args.leaderboard_command}"
     try:
@@ -64,14 +92,16 @@ def run(args: argparse.Namespace) -> int:
             try:
                 meta = yaml.safe_load(Path(args.meta).read_text())
             except (OSError, yaml.YAMLError) as exc:
-                raise EntryError(f"--meta {args.meta!r}: unreadable ({exc})") from exc
+                why = yaml_problem(exc) if isinstance(exc, yaml.YAMLError) else exc
+                raise EntryError(f"--meta {args.meta!r}: unreadable ({why})") from exc
             episodes = args.evaluate if args.evaluate is not None else (0 if args.records else 50)
+            policies = _policy_arguments(args.policy)
             entry = add_entry(
-                args.leaderboard, args.policy, meta, args.records, evaluate_episodes=episodes,
+                args.leaderboard, policies, meta, args.records, evaluate_episodes=episodes,
                 trust_code=args.trust_code, workers=args.workers,
             )  # fmt: skip
-            tier = entry.tier(load_config(args.leaderboard)["private_salt_sha256"])
-            print(f"wrote {entry.folder / 'entry.yaml'} ({len(entry.records)} records, tier: {tier})")
+            print(f"wrote {entry.folder / 'entry.yaml'} ({len(entry.records)} records, tier: self-reported until "
+                  "the maintainers sign a verification)")  # fmt: skip
         elif args.leaderboard_command == "verify":
             from racebench.leaderboard.verify import verify_entry
 
@@ -86,12 +116,45 @@ def run(args: argparse.Namespace) -> int:
             failed = [c for c in checks if not c.ok]
             if failed:
                 raise SystemExit(f"{command}: {len(failed)} of {len(checks)} cells failed")
-            print(f"{len(checks)} cells verified (Fisher exact, α = 0.001 each; lap times within 0.2 s + 4 SE)")
+            print(f"{len(checks)} cells verified (Fisher exact, α = 0.001 each; lap times within 0.2 s + 4 SE; "
+                  "deterministic built-ins episode by episode)")  # fmt: skip
+        elif args.leaderboard_command == "sign":
+            from racebench.leaderboard.seeds import salt_from_env
+            from racebench.leaderboard.signing import check_verified, sign_entry
+
+            if args.episodes < 1:
+                raise EntryError(f"--episodes must be >= 1, got {args.episodes}")
+            (entry,) = load_entries(args.leaderboard, [args.entry])
+            salt = salt_from_env()
+            path = sign_entry(entry, salt, args.key, args.private_records, args.episodes, args.workers)
+            result = check_verified(entry, load_config(args.leaderboard))  # what the site will accept
+            for env_id, cell in result.cells.items():
+                print(
+                    f"{entry.name} {env_id} [private]: {cell.successes}/{cell.n}, mean lap {cell.lap_time_mean:.2f} s"
+                )
+            print(f"wrote {path} (signed; checks against the pinned maintainers' key)")
         elif args.leaderboard_command == "build":
             from racebench.leaderboard.site import build_site
 
             index = build_site(args.leaderboard, args.out, videos=args.videos, trust_code=args.trust_code)
             print(f"wrote {index}")
-    except (EntryError, AgentLoadError, ValueError, OSError) as exc:
+    except (EntryError, SignatureError, SeedSetError, AgentLoadError, ValueError, OSError) as exc:
         raise SystemExit(f"{command}: {exc}") from exc
     return 0
+
+
+def _policy_arguments(values: list[str]) -> str | dict[str, str]:
+    """``--policy`` values: one bare policy (every track) or ``TRACK=POLICY`` once per track."""
+    from racebench.leaderboard.entries import EntryError
+
+    if len(values) == 1 and "=" not in values[0]:
+        return values[0]
+    policies: dict[str, str] = {}
+    for value in values:
+        track, eq, policy = value.partition("=")
+        if not eq or not policy:
+            raise EntryError(f"--policy {value!r}: with several policies each is TRACK=POLICY (S, Circle, J)")
+        if track in policies:
+            raise EntryError(f"--policy: track {track!r} given twice")
+        policies[track] = policy
+    return policies

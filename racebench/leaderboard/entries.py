@@ -1,64 +1,91 @@
-"""Leaderboard entries: ``<leaderboard>/<entry>/entry.yaml``, the records it points to, and its computed tier.
+"""Leaderboard entries: ``<leaderboard>/<entry>/entry.yaml``, one **method** each, its policies and their records.
 
-An entry names one policy that is already in the repository (its path and the sha256 of its bytes, or a
-built-in agent as ``builtin:<name>``), who made it and how, and the result folders holding its evaluation
-records. Paths are relative to the repository root, the folder two levels above the leaderboard folder
-(``results/leaderboard`` → the checkout). Every record an entry points to must be valid
-(:func:`racebench.records.read_record`) and of exactly that policy and the current env version.
+An entry is a method, as a row of the paper's Table II: one policy per track (``S``, ``Circle``, ``J``) or one
+policy for all three (``all``). Each policy is one line of ``policies``::
 
-The tier is computed, never declared:
+    policies:
+      S: {policy: baselines/checkpoints/x-S/x-S.zip, onnx: baselines/checkpoints/x-S/x-S.onnx, records: [...]}
 
-* ``reference``: a privileged built-in (``planner``, ``follow``): it reads the true scene, so it is shown for
-  scale and never ranked;
-* ``verified``: an ONNX policy (running it runs no code from the file) with records on the **private** seed set
-  of a salt the maintainers published the hash of (:data:`CONFIG_FILE`, ``private_salt_sha256``); it is ranked
-  on those records only;
-* ``self-reported``: anything else (SB3 ``.zip``, Python classes, non-privileged built-ins, public seeds); ranked
-  on its public-seed records.
+``policy`` is the file (or ``builtin:<name>``) its public records were flown with, ``onnx`` its ONNX export (what
+the maintainers verify), ``records`` the result folders of its evaluation records, and optional ``steps`` and
+``wall_clock_s`` its training budget (else read from ``summary.json`` beside the policy). Paths are relative to the
+repository root, two levels above the leaderboard folder. Every record must be valid
+(:func:`racebench.records.read_record`) and of exactly that policy and the current env version; a new entry's
+records must also come from committed code (``git_dirty: false``).
+
+A policy is judged on its **own** track: the track's main id (and its density and gate-shift ids where it has
+them). The rank key is the mean of the three own-track success rates, then the mean lap time; a method without
+all three tracks is listed unranked. Success of a per-track policy on the other tracks is cross-track
+generalisation: shown, never the key.
+
+The tier is computed, never declared: ``reference`` for a privileged built-in (shown for scale, never ranked);
+``verified`` for an entry whose signed result (:mod:`racebench.leaderboard.signing`) checks against the pinned
+maintainers' key and whose ONNX files are still the signed ones (ranked on the signed private-seed numbers);
+``self-reported`` for everything else (ranked on its public-seed records). Private-seed records without a valid
+signature never make an entry verified.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import os
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from racebench.agents import BUILTIN_AGENTS, BUILTIN_PRIVILEGED, AgentLoadError, builtin_identity, policy_identity
+from racebench.agents import (
+    BUILTIN_AGENTS,
+    BUILTIN_PRIVILEGED,
+    AgentLoadError,
+    VecNormalizeChoiceError,
+    builtin_identity,
+    policy_identity,
+)
 from racebench.evaluation import SUITES, TRACK_ORDER, split_env_id
-from racebench.records import InvalidRecordError, read_record
+from racebench.records import RECORDS_FILE, has_records, name_of, read_folder
 from racebench.registration import ENV_VERSION
 from racebench.statistics import wilson_interval
+from racebench.yamlfile import yaml_problem
 
 ENTRY_FILE = "entry.yaml"
-#: Leaderboard-wide settings, beside the entries: the fingerprints of the maintainers' private salts.
+#: Leaderboard-wide settings, beside the entries: the salts' fingerprints and the maintainers' public key.
 CONFIG_FILE = "leaderboard.yaml"
 DEFAULT_LEADERBOARD = Path("results") / "leaderboard"
 TIERS: tuple[str, ...] = ("verified", "self-reported", "reference")
 MAIN_IDS: tuple[str, ...] = tuple(SUITES["main"])
+TRACK_MAIN: dict[str, str] = {t: f"RaceObs-{t}-v0" for t in TRACK_ORDER}
+ALL_TRACKS = "all"  # the key of one policy flown on every track
+POLICY_KEYS: tuple[str, ...] = (*TRACK_ORDER, ALL_TRACKS)
 OBS_MODES: tuple[str, ...] = ("vision", "state")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
+MAX_DESCRIPTION = 240
 # Field -> (accepted types, required). ``notes`` is free text for what the fields cannot say.
 META_FIELDS: dict[str, tuple[tuple[type, ...], bool]] = {
     "name": ((str,), True),
+    "description": ((str,), True),
     "authors": ((list,), True),
-    "method": ((str,), True),
-    "link": ((str,), True),
     "obs_mode": ((str,), True),
-    "training_steps": ((int,), True),
-    "training_wall_clock_s": ((int, float), True),
+    "teacher": ((str,), True),
+    "config": ((str,), True),
+    "command": ((str,), True),
     "hardware": ((str,), True),
     "training_seeds": ((list,), True),
-    "policy": ((str,), True),
-    "policy_sha256": ((str,), True),
-    "records": ((list,), True),
+    "policies": ((dict,), True),
     "notes": ((str,), False),
+}
+POLICY_FIELDS: dict[str, tuple[tuple[type, ...], bool]] = {
+    "policy": ((str,), True),
+    "records": ((list,), True),
+    "onnx": ((str,), False),
+    "steps": ((int,), False),
+    "wall_clock_s": ((int, float), False),
 }
 
 
@@ -93,13 +120,55 @@ class Cell:
 
 
 @dataclass
+class Policy:
+    """One policy of a method entry: its track key, the file its public records were flown with, its ONNX export."""
+
+    track: str  # S | Circle | J | all
+    policy: str  # a repository path (or file.py:Class) or builtin:<name>
+    sha256: str
+    records_dirs: list[str]
+    onnx: str | None = None
+    onnx_sha256: str | None = None
+    steps: int | None = None
+    wall_clock_s: float | None = None
+    budget_source: str = "unknown"  # "entry.yaml", "summary.json" or "unknown"
+    records: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def builtin(self) -> str | None:
+        """The built-in agent's name for ``builtin:<name>``, else None."""
+        return self.policy.split(":", 1)[1] if self.policy.startswith("builtin:") else None
+
+    @property
+    def kind(self) -> str:
+        """``builtin``, ``onnx``, ``sb3`` or ``python``: how its public records were flown."""
+        if self.builtin:
+            return "builtin"
+        return "onnx" if self.policy.endswith(".onnx") else "sb3" if self.policy.endswith(".zip") else "python"
+
+    @property
+    def tracks(self) -> tuple[str, ...]:
+        """The tracks this policy is judged on: its own, or all three."""
+        return TRACK_ORDER if self.track == ALL_TRACKS else (self.track,)
+
+    @property
+    def main_ids(self) -> tuple[str, ...]:
+        """The main ids of :attr:`tracks`."""
+        return tuple(TRACK_MAIN[t] for t in self.tracks)
+
+    def own(self, env_id: str) -> bool:
+        """Whether ``env_id`` (a main, density or gate-shift id) is of one of its own tracks."""
+        return split_env_id(env_id)[0] in self.tracks
+
+
+@dataclass
 class Entry:
-    """One leaderboard entry: its metadata (``meta``, as in ``entry.yaml``), folder and repository root."""
+    """One method entry: its metadata (``meta``, as in ``entry.yaml``), folder, repository root and policies."""
 
     meta: dict[str, Any]
     folder: Path
     root: Path
-    records: list[dict[str, Any]] = field(default_factory=list)
+    policies: dict[str, Policy] = field(default_factory=dict)
 
     @property
     def name(self) -> str:
@@ -107,48 +176,75 @@ class Entry:
         return self.meta["name"]
 
     @property
-    def builtin(self) -> str | None:
-        """The built-in agent's name for ``policy: builtin:<name>``, else None."""
-        policy = self.meta["policy"]
-        return policy.split(":", 1)[1] if policy.startswith("builtin:") else None
+    def records(self) -> list[dict[str, Any]]:
+        """Every record of every policy."""
+        return [r for p in self.policies.values() for r in p.records]
 
     @property
-    def agent_spec(self) -> str:
-        """The spec the evaluator loads this policy from (a path relative to the working directory)."""
-        return self.builtin or _spec_at(self.meta["policy"], self.root)
+    def tracks(self) -> tuple[str, ...]:
+        """The tracks it has a policy for, in the paper's order."""
+        covered = {t for p in self.policies.values() for t in p.tracks}
+        return tuple(t for t in TRACK_ORDER if t in covered)
 
     @property
-    def kind(self) -> str:
-        """``builtin``, ``onnx``, ``sb3`` or ``python``."""
-        if self.builtin:
-            return "builtin"
-        policy = self.meta["policy"]
-        return "onnx" if policy.endswith(".onnx") else "sb3" if policy.endswith(".zip") else "python"
+    def complete(self) -> bool:
+        """Whether it has a policy for each of the three tracks (only then is it ranked)."""
+        return len(self.tracks) == len(TRACK_ORDER)
 
     @property
     def privileged(self) -> bool:
-        """Whether the evaluator makes this policy privileged (only built-ins can be)."""
-        return bool(self.builtin and BUILTIN_PRIVILEGED[self.builtin])
+        """Whether a policy reads the true scene (only built-ins can be, or records say so)."""
+        return any(
+            (p.builtin and BUILTIN_PRIVILEGED.get(p.builtin, False)) or any(r["privileged"] for r in p.records)
+            for p in self.policies.values()
+        )
 
-    def tier(self, accepted_salts: Iterable[str] = ()) -> str:
-        """The computed tier (see the module docstring) given the maintainers' salt fingerprints."""
-        if self.privileged or any(r["privileged"] for r in self.records):
-            return "reference"
-        accepted = set(accepted_salts)
-        if self.kind == "onnx" and any(r.get("seed_salt_sha256") in accepted for r in self.records):
-            return "verified"
-        return "self-reported"
+    @property
+    def privileged_teacher(self) -> bool:
+        """Whether it learned from a teacher that reads the true scene (a privileged built-in)."""
+        return self.meta["teacher"] != "none"
 
-    def ranked_records(self, accepted_salts: Iterable[str] = ()) -> list[dict[str, Any]]:
-        """The records its ranking is computed from: the accepted private ones if verified, else the public ones."""
-        accepted = set(accepted_salts)
-        if self.tier(accepted) == "verified":
-            return [r for r in self.records if r.get("seed_salt_sha256") in accepted]
-        return [r for r in self.records if r["seed_set"] == "public"]
+    @property
+    def kind(self) -> str:
+        """The kinds of its policies' files, e.g. ``sb3 + onnx`` (an ONNX export beside each)."""
+        kinds = sorted({p.kind for p in self.policies.values()})
+        return "/".join(kinds) + (" + onnx" if all(p.onnx for p in self.policies.values()) else "")
 
-    def cells(self, accepted_salts: Iterable[str] = ()) -> dict[str, Cell]:
-        """One :class:`Cell` per env id of :meth:`ranked_records`."""
-        return summarize_cells(self.ranked_records(accepted_salts))
+    def policy_for(self, track: str) -> Policy | None:
+        """The policy it flies on ``track`` (its own or the all-track one), None without one."""
+        return next((p for p in self.policies.values() if track in p.tracks), None)
+
+    def public_records(self, track: str) -> list[dict[str, Any]]:
+        """The public-seed records of its ``track`` policy on ``track``'s ids (main, density, gate shift)."""
+        policy = self.policy_for(track)
+        if policy is None:
+            return []
+        return [r for r in policy.records if r["seed_set"] == "public" and split_env_id(r["env_id"])[0] == track]
+
+    def own_cells(self) -> dict[str, Cell]:
+        """Public-seed cells of each track's policy on that track's ids (main, density, gate shift)."""
+        return summarize_cells([r for t in self.tracks for r in self.public_records(t)])
+
+    def cross_cells(self) -> dict[str, Cell]:
+        """Public cells of its per-track policies on the *other* main ids (cross-track generalisation)."""
+        cells: dict[str, Cell] = {}
+        for policy in self.policies.values():
+            if policy.track == ALL_TRACKS:
+                continue
+            other = [r for r in policy.records if r["seed_set"] == "public" and r["env_id"] in MAIN_IDS
+                     and not policy.own(r["env_id"])]  # fmt: skip
+            for env_id, cell in summarize_cells(other).items():
+                cells[f"{policy.track}→{env_id}"] = cell
+        return cells
+
+    def budget(self) -> tuple[int | None, float | None]:
+        """Total training steps and wall clock over its policies (None where a policy's budget is unknown)."""
+        steps = [p.steps for p in self.policies.values()]
+        wall = [p.wall_clock_s for p in self.policies.values()]
+        return (
+            None if any(s is None for s in steps) else sum(steps),
+            None if any(w is None for w in wall) else float(sum(wall)),
+        )
 
 
 def summarize_cells(records: Sequence[dict[str, Any]]) -> dict[str, Cell]:
@@ -195,49 +291,143 @@ def _inside(path: Path, root: Path, what: str, name: str) -> Path:
 
 
 def validate_meta(meta: Any, root: Path, where: str) -> dict[str, Any]:
-    """Check an entry's metadata (types, values, the policy's sha256 against its bytes); return it."""
+    """Check an entry's metadata (types, values, each policy line); return it. Hashes are checked on load."""
     if not isinstance(meta, dict):
         raise EntryError(f"{where}: expected a YAML mapping of the entry fields, got {type(meta).__name__}")
-    missing = [k for k, (_, required) in META_FIELDS.items() if required and k not in meta]
-    if missing:
-        raise EntryError(f"{where}: missing fields {missing}")
-    unknown = sorted(set(meta) - set(META_FIELDS))
-    if unknown:
-        raise EntryError(f"{where}: unknown fields {unknown} (allowed: {list(META_FIELDS)})")
-    for key, (types, _) in META_FIELDS.items():
-        if key in meta and (not isinstance(meta[key], types) or isinstance(meta[key], bool)):
-            raise EntryError(f"{where}: {key} is {meta[key]!r}, expected {'/'.join(t.__name__ for t in types)}")
+    _check_fields(meta, META_FIELDS, where)
     name = meta["name"]
     if not _NAME.match(name):
         raise EntryError(f"{where}: name {name!r} must be 1-64 letters, digits, '.', '_' or '-' (it names a folder)")
     if not meta["authors"] or not all(isinstance(a, str) and a.strip() for a in meta["authors"]):
         raise EntryError(f"{where}: authors must be a non-empty list of names")
-    for key in ("method", "link", "hardware"):
+    for key in ("description", "config", "command", "hardware", "teacher"):
         if not meta[key].strip():
             raise EntryError(f"{where}: {key} is empty")
+    description = meta["description"]
+    if "\n" in description.strip() or len(description) > MAX_DESCRIPTION:
+        raise EntryError(f"{where}: description must be one line of at most {MAX_DESCRIPTION} characters")
+    if meta["teacher"] != "none" and meta["teacher"] not in BUILTIN_AGENTS:
+        raise EntryError(f"{where}: teacher {meta['teacher']!r} must be 'none' or a built-in agent {BUILTIN_AGENTS}")
     if meta["obs_mode"] not in OBS_MODES:
         raise EntryError(f"{where}: obs_mode {meta['obs_mode']!r} not in {OBS_MODES}")
-    if (
-        meta["training_steps"] < 0
-        or not math.isfinite(meta["training_wall_clock_s"])
-        or (meta["training_wall_clock_s"] < 0)
-    ):
-        raise EntryError(f"{where}: training_steps and training_wall_clock_s must be >= 0")
     if not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s < 1_000_000 for s in meta["training_seeds"]):
         raise EntryError(f"{where}: training_seeds must be integers below 1,000,000 (evaluation seeds lie above)")
-    if meta["training_steps"] > 0 and not meta["training_seeds"]:
-        raise EntryError(f"{where}: a trained policy lists its training seeds")
-    if not _HEX64.match(meta["policy_sha256"]):
-        raise EntryError(f"{where}: policy_sha256 is not a lower-case sha256 hex digest")
-    actual = policy_sha256(meta["policy"], root, name)
-    if actual != meta["policy_sha256"]:
-        raise EntryError(
-            f"{where}: policy_sha256 {meta['policy_sha256'][:12]}… does not match {meta['policy']!r} "
-            f"(its bytes hash to {actual[:12]}…)"
-        )
-    if not meta["records"] or not all(isinstance(r, str) for r in meta["records"]):
-        raise EntryError(f"{where}: records must list at least one result folder (paths relative to the root)")
+    policies = meta["policies"]
+    if not policies:
+        raise EntryError(f"{where}: policies must name at least one track's policy")
+    unknown = sorted(set(policies) - set(POLICY_KEYS))
+    if unknown:
+        raise EntryError(f"{where}: policies has unknown tracks {unknown} (allowed: {list(POLICY_KEYS)})")
+    if ALL_TRACKS in policies and len(policies) > 1:
+        raise EntryError(f"{where}: a policy for all tracks excludes per-track policies")
+    for track, line in policies.items():
+        at = f"{where}: policies.{track}"
+        if not isinstance(line, dict):
+            raise EntryError(f"{at}: expected a mapping {{policy: ..., records: [...]}}, got {type(line).__name__}")
+        _check_fields(line, POLICY_FIELDS, at)
+        if not line["records"] or not all(isinstance(r, str) for r in line["records"]):
+            raise EntryError(f"{at}: records must list at least one result folder (paths relative to the root)")
+        if "onnx" in line and not line["onnx"].endswith(".onnx"):
+            raise EntryError(f"{at}: onnx {line['onnx']!r} is not an .onnx file")
+        if (
+            line.get("steps", 0) < 0
+            or not math.isfinite(line.get("wall_clock_s", 0))
+            or line.get("wall_clock_s", 0) < 0
+        ):
+            raise EntryError(f"{at}: steps and wall_clock_s must be >= 0")
     return meta
+
+
+def _check_fields(mapping: dict[str, Any], fields: dict[str, tuple[tuple[type, ...], bool]], where: str) -> None:
+    missing = [k for k, (_, required) in fields.items() if required and k not in mapping]
+    if missing:
+        raise EntryError(f"{where}: missing fields {missing}")
+    unknown = sorted(set(mapping) - set(fields))
+    if unknown:
+        raise EntryError(f"{where}: unknown fields {unknown} (allowed: {list(fields)})")
+    for key, (types, _) in fields.items():
+        if key in mapping and (not isinstance(mapping[key], types) or isinstance(mapping[key], bool)):
+            raise EntryError(f"{where}: {key} is {mapping[key]!r}, expected {'/'.join(t.__name__ for t in types)}")
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _summary_budget(policy: str, root: Path) -> tuple[int | None, float | None]:
+    """Steps and wall clock from the ``summary.json`` a training run wrote beside the checkpoint (None if absent)."""
+    if policy.startswith("builtin:"):
+        return 0, 0.0  # nothing was trained
+    summary = (root / policy.partition(":")[0]).parent / "summary.json"
+    try:
+        data = json.loads(summary.read_text())
+    except (OSError, ValueError):
+        return None, None
+    steps = data.get("env_steps", data.get("timesteps"))
+    wall = data.get("wall_s")
+    return (int(steps) if isinstance(steps, int) else None, float(wall) if isinstance(wall, (int, float)) else None)
+
+
+def load_policy(name: str, track: str, line: dict[str, Any], root: Path) -> Policy:
+    """One policy line, its files hashed and its records loaded (validated, of this policy and env version)."""
+    digest = policy_sha256(line["policy"], root, f"{name} {track}")
+    onnx, onnx_digest = line.get("onnx"), None
+    if onnx is not None:
+        path = _inside(Path(onnx), root, "onnx", name)
+        if not path.is_file():
+            raise EntryError(f"{name}: {track} onnx file {onnx!r} does not exist in the repository")
+        onnx_digest = file_sha256(path)
+    steps, wall = line.get("steps"), line.get("wall_clock_s")
+    source = "entry.yaml"
+    if steps is None or wall is None:
+        found_steps, found_wall = _summary_budget(line["policy"], root)
+        if steps is None and wall is None and found_steps is not None:
+            source = "summary.json" if not line["policy"].startswith("builtin:") else "none (not trained)"
+        steps = steps if steps is not None else found_steps
+        wall = wall if wall is not None else found_wall
+        if steps is None or wall is None:
+            source = "unknown"
+    policy = Policy(track, line["policy"], digest, list(line["records"]), onnx, onnx_digest, steps, wall, source)
+    policy.records = load_records(name, policy, root)
+    return policy
+
+
+def load_records(name: str, policy: Policy, root: Path) -> list[dict[str, Any]]:
+    """Every record of the policy's result folders, validated, of its policy and the current env version."""
+    records: list[dict[str, Any]] = []
+    seen: set[str] = set()
+    for folder in policy.records_dirs:
+        directory = _inside(Path(folder), root, "records folder", name)
+        found = read_folder(directory) if has_records(directory) else None
+        if found is None or not (found.records or found.problems):
+            raise EntryError(f"{name}: no records in {folder!r} (expected {folder}/{RECORDS_FILE})")
+        if found.problems:
+            raise EntryError(f"{name}: invalid record {found.problems[0].error()}")
+        for record in found.sorted_records():
+            path = f"{folder}/{RECORDS_FILE} ({record['env_id']} seed {record['seed']})"
+            if record["policy_sha256"] != policy.sha256:
+                raise EntryError(
+                    f"{name}: {path} is a record of another policy (sha256 {record['policy_sha256'][:12]}…), "
+                    f"not of its {policy.track} policy {policy.policy}"
+                )
+            if record["env_version"] != ENV_VERSION:
+                raise EntryError(
+                    f"{name}: {path} is of env version {record['env_version']}, this racebench is {ENV_VERSION}: "
+                    "re-evaluate the entry"
+                )
+            slot = name_of(record)
+            if slot in seen:  # the same slot through two folders would count one episode twice
+                raise EntryError(f"{name}: episode {record['env_id']} seed {record['seed']} is in two of its records "
+                                 "folders")  # fmt: skip
+            seen.add(slot)
+            records.append(record)
+    check_seed_prefixes(name, records)
+    return records
 
 
 def policy_sha256(policy: str, root: Path, name: str = "entry") -> str:
@@ -253,40 +443,14 @@ def policy_sha256(policy: str, root: Path, name: str = "entry") -> str:
         raise EntryError(f"{name}: policy file {file_part!r} does not exist in the repository")
     try:
         return policy_identity(_spec_at(policy, root)).sha256
+    except VecNormalizeChoiceError as exc:
+        # An entry names one file, which must say by itself what is flown: no per-entry statistics choice.
+        raise EntryError(
+            f"{name}: {exc}; a leaderboard policy cannot carry that choice: export it with the choice made "
+            "(racebench export-onnx CKPT --vecnormalize PATH | --no-vecnormalize) and submit the .onnx"
+        ) from exc
     except AgentLoadError as exc:
         raise EntryError(f"{name}: {exc}") from exc
-
-
-def load_entry_records(meta: dict[str, Any], root: Path) -> list[dict[str, Any]]:
-    """Every record of the entry's result folders, validated, of its policy and the current env version."""
-    name = meta["name"]
-    records: list[dict[str, Any]] = []
-    seen: set[str] = set()
-    for folder in meta["records"]:
-        directory = _inside(Path(folder), root, "records folder", name)
-        paths = sorted((directory / "records").glob("*.json"))
-        if not paths:
-            raise EntryError(f"{name}: no records in {folder!r} (expected {folder}/records/*.json)")
-        for path in paths:
-            try:
-                record = read_record(path)
-            except InvalidRecordError as exc:
-                raise EntryError(f"{name}: invalid record {exc}") from exc
-            if record["policy_sha256"] != meta["policy_sha256"]:
-                raise EntryError(
-                    f"{name}: {path} is a record of another policy (sha256 {record['policy_sha256'][:12]}…)"
-                )
-            if record["env_version"] != ENV_VERSION:
-                raise EntryError(
-                    f"{name}: {path} is of env version {record['env_version']}, this racebench is {ENV_VERSION}: "
-                    "re-evaluate the entry"
-                )
-            if path.name in seen:  # the same slot through two folders would count one episode twice
-                raise EntryError(f"{name}: episode {path.name} is in two of its records folders")
-            seen.add(path.name)
-            records.append(record)
-    check_seed_prefixes(name, records)
-    return records
 
 
 def check_seed_prefixes(name: str, records: Sequence[dict[str, Any]], salt: str | None = None) -> None:
@@ -311,34 +475,51 @@ def check_seed_prefixes(name: str, records: Sequence[dict[str, Any]], salt: str 
             )
 
 
+def check_clean(name: str, records: Sequence[dict[str, Any]]) -> None:
+    """Refuse records made from uncommitted code (``git_dirty``): no commit holds the code that flew them."""
+    dirty = [r for r in records if r["git_dirty"]]
+    if dirty:
+        cells = sorted({f"{r['env_id']} ({r['git_commit']})" for r in dirty})
+        raise EntryError(
+            f"{name}: {len(dirty)} of {len(records)} records were made from uncommitted code (git_dirty: true; "
+            f"{', '.join(cells)}; e.g. {dirty[0]['env_id']} seed {dirty[0]['seed']}): re-evaluate them from a clean "
+            "checkout"
+        )
+
+
 def load_entry(folder: str | Path, root: str | Path | None = None) -> Entry:
-    """Load and validate ``folder/entry.yaml`` and its records (root: see :func:`repo_root`)."""
+    """Load and validate ``folder/entry.yaml``, its policies and their records (root: see :func:`repo_root`)."""
     folder = Path(folder)
     root = Path(root) if root is not None else repo_root(folder.parent)
     path = folder / ENTRY_FILE
     try:
         meta = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as exc:
-        raise EntryError(f"{path}: unreadable ({exc})") from exc
+        why = yaml_problem(exc) if isinstance(exc, yaml.YAMLError) else exc
+        raise EntryError(f"{path}: unreadable ({why})") from exc
     meta = validate_meta(meta, root, str(path))
     if meta["name"] != folder.name:
         raise EntryError(f"{path}: name {meta['name']!r} differs from its folder {folder.name!r}")
-    return Entry(meta, folder, root, load_entry_records(meta, root))
+    policies = {track: load_policy(meta["name"], track, line, root) for track, line in meta["policies"].items()}
+    return Entry(meta, folder, root, policies)
 
 
 def load_config(leaderboard: str | Path) -> dict[str, Any]:
-    """``leaderboard.yaml``: ``private_salt_sha256``, the list of accepted salt fingerprints (empty if absent)."""
+    """``leaderboard.yaml``: ``private_salt_sha256`` (accepted salt fingerprints) and ``maintainers_public_key``."""
     path = Path(leaderboard) / CONFIG_FILE
     if not path.is_file():
-        return {"private_salt_sha256": []}
+        return {"private_salt_sha256": [], "maintainers_public_key": None}
     try:
         config = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as exc:
-        raise EntryError(f"{path}: unreadable ({exc})") from exc
+        raise EntryError(f"{path}: unreadable ({yaml_problem(exc)})") from exc
     salts = config.get("private_salt_sha256") or []
     if not isinstance(salts, list) or not all(isinstance(s, str) and _HEX64.match(s) for s in salts):
         raise EntryError(f"{path}: private_salt_sha256 must be a list of sha256 hex digests")
-    return {**config, "private_salt_sha256": salts}
+    key = config.get("maintainers_public_key")
+    if key is not None and not isinstance(key, str):
+        raise EntryError(f"{path}: maintainers_public_key must be a PEM text block")
+    return {**config, "private_salt_sha256": salts, "maintainers_public_key": key}
 
 
 def load_entries(leaderboard: str | Path, names: Sequence[str] | None = None) -> list[Entry]:
@@ -359,20 +540,21 @@ def load_entries(leaderboard: str | Path, names: Sequence[str] | None = None) ->
 
 def add_entry(
     leaderboard: str | Path,
-    policy: str,
+    policies: str | dict[str, str],
     meta: dict[str, Any],
     records: Sequence[str] = (),
     evaluate_episodes: int = 0,
     trust_code: bool = False,
     workers: int = 1,
 ) -> Entry:
-    """Create ``<leaderboard>/<meta name>/entry.yaml`` for ``policy`` (a repository path or ``builtin:<name>``).
+    """Create ``<leaderboard>/<meta name>/entry.yaml`` for a method's policies (repository paths or built-ins).
 
-    ``meta`` holds the descriptive fields; ``policy`` and ``records`` (result folders, relative to the root) are
-    added, ``policy_sha256`` is computed (a declared one must match). With ``evaluate_episodes > 0`` the policy
-    is first evaluated on the main suite's public seeds into ``<entry>/eval-public`` (resumable), which becomes
-    one of its records folders. A name already used by an entry is refused (case-insensitive: it names a
-    folder). ``entry.yaml`` is written last, so a failed run leaves no entry.
+    ``policies``: track (``S``, ``Circle``, ``J``) -> policy, or one policy for all tracks. ``meta`` holds the
+    descriptive fields; each policy line is written from the policy, ``records`` (result folders relative to the
+    root; one policy only) and an ONNX policy's own path as ``onnx``. With ``evaluate_episodes > 0`` each policy
+    is first evaluated on the main suite's public seeds into ``<entry>/eval-public-<track>`` (resumable). A name
+    already used is refused (case-insensitive: it names a folder), and so are records made from uncommitted code
+    (:func:`check_clean`). ``entry.yaml`` is written last, so a failed run leaves no entry.
     """
     from racebench.evaluation import Evaluator
 
@@ -386,36 +568,59 @@ def add_entry(
     taken = {p.parent.name.lower() for p in leaderboard.glob(f"*/{ENTRY_FILE}")}
     if name.lower() in taken:
         raise EntryError(f"an entry named {name!r} already exists in {leaderboard}; choose another name")
-    if not policy.startswith("builtin:") and policy in BUILTIN_AGENTS:
-        policy = f"builtin:{policy}"
-    if not policy.startswith("builtin:"):
-        file_part, colon, cls_name = policy.partition(":") if ":" in policy else (policy, "", "")
-        absolute = Path(file_part).resolve()
-        if not absolute.is_relative_to(root):
-            raise EntryError(f"policy {policy!r} must be a file inside the repository ({root}); commit it there first")
-        policy = f"{absolute.relative_to(root).as_posix()}{colon}{cls_name}"
-    digest = policy_sha256(policy, root, name)
-    declared = meta.get("policy_sha256")
-    if declared is not None and declared != digest:
-        raise EntryError(
-            f"{name}: declared policy_sha256 {str(declared)[:12]}… but {policy!r} hashes to {digest[:12]}…"
-        )
+    if isinstance(policies, str):
+        policies = {ALL_TRACKS: policies}
+    if records and len(policies) != 1:
+        raise EntryError(f"{name}: --records belongs to one policy; with several, use --evaluate")
     folder = leaderboard / name
-    folders = [Path(os.path.relpath(Path(r).resolve(), root)).as_posix() for r in records]
-    full = {**meta, "policy": policy, "policy_sha256": digest, "records": folders}
+    lines: dict[str, dict[str, Any]] = {}
+    for track, policy in policies.items():
+        if track not in POLICY_KEYS:
+            raise EntryError(f"{name}: unknown track {track!r} (allowed: {list(POLICY_KEYS)})")
+        if not policy.startswith("builtin:") and policy in BUILTIN_AGENTS:
+            policy = f"builtin:{policy}"
+        if not policy.startswith("builtin:"):
+            file_part, colon, cls_name = policy.partition(":") if ":" in policy else (policy, "", "")
+            absolute = Path(file_part).resolve()
+            if not absolute.is_relative_to(root):
+                raise EntryError(
+                    f"policy {policy!r} must be a file inside the repository ({root}); commit it there first"
+                )
+            policy = f"{absolute.relative_to(root).as_posix()}{colon}{cls_name}"
+        policy_sha256(policy, root, name)  # a missing or unreadable policy fails before anything is flown
+        folders = [Path(os.path.relpath(Path(r).resolve(), root)).as_posix() for r in records]
+        if evaluate_episodes > 0:
+            out = folder / f"eval-public-{track}"
+            rel = out.resolve().relative_to(root).as_posix()
+            folders = [*folders, rel] if rel not in folders else folders
+        line: dict[str, Any] = {"policy": policy, "records": folders}
+        if policy.endswith(".onnx"):
+            line["onnx"] = policy
+        lines[track] = line
+    full = validate_meta({**meta, "policies": lines}, root, name)  # bad metadata fails before flying
     if evaluate_episodes > 0:
-        out = folder / "eval-public"
-        rel = out.resolve().relative_to(root).as_posix()
-        full["records"] = [*folders, rel] if rel not in folders else folders
-        validate_meta({**full, "records": full["records"]}, root, name)  # bad metadata fails before flying
-        spec = Entry(full, folder, root).agent_spec
-        Evaluator(
-            spec, ["main"], episodes=evaluate_episodes, out_dir=out, agent_name=name,
-            trust_code=trust_code, workers=workers,
-        ).run(progress=False)  # fmt: skip
-    full = validate_meta(full, root, name)
-    entry = Entry(full, folder, root, load_entry_records(full, root))
+        for track, line in lines.items():
+            Evaluator(
+                _spec_at(line["policy"], root) if not line["policy"].startswith("builtin:")
+                else line["policy"].split(":", 1)[1],
+                ["main"], episodes=evaluate_episodes, out_dir=root / line["records"][-1], agent_name=f"{name}-{track}",
+                trust_code=trust_code, workers=workers,
+            ).run(progress=False)  # fmt: skip
+    entry = Entry(full, folder, root, {t: load_policy(name, t, line, root) for t, line in lines.items()})
+    check_clean(name, entry.records)
     folder.mkdir(parents=True, exist_ok=True)
     ordered = {k: full[k] for k in META_FIELDS if k in full}
-    (folder / ENTRY_FILE).write_text(yaml.safe_dump(ordered, sort_keys=False, allow_unicode=True, width=110))
+    (folder / ENTRY_FILE).write_text(dump_entry(ordered))
     return entry
+
+
+def dump_entry(meta: dict[str, Any]) -> str:
+    """``entry.yaml`` text: block style for the metadata, one flow-style line per policy (adding a track is a line)."""
+    head = {k: v for k, v in meta.items() if k != "policies"}
+    text = yaml.safe_dump(head, sort_keys=False, allow_unicode=True, width=110)
+    lines = ["policies:"]
+    for track, line in meta["policies"].items():
+        lines.append(
+            f"  {track}: " + yaml.safe_dump(line, default_flow_style=True, sort_keys=False, width=10_000).strip()
+        )
+    return text + "\n".join(lines) + "\n"

@@ -36,6 +36,7 @@ from the last iteration's student.
 from __future__ import annotations
 
 import json
+import pickle
 import shutil
 import time
 from collections.abc import Iterator
@@ -48,9 +49,9 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from racebench.agents import BUILTIN_VERSIONS, load_agent
+from racebench.agents import BUILTIN_VERSIONS, load_agent, record_written
 from racebench.control import acceleration_command, command_to_ctbr
-from racebench.evaluation import EVAL_SEED_BASE
+from racebench.evaluation import EVAL_SEED_BASE, VALIDATION_SEED_BASE
 from racebench.planner import OBSTACLE_KNOWLEDGE, FastPlannerAgent, PlannerAgent
 from racebench.raycast import BatchDepthRenderer
 from racebench.registration import TRACK_IDS
@@ -70,9 +71,8 @@ CLEARANCE_PROBES: np.ndarray = np.array(
 CLEARANCE_CAP_M = 2.0
 AUX_TASKS: tuple[str, ...] = ("line", "clearance")
 # Validation scene i (choosing among a run's kept students, DaggerConfig.select_episodes) has seed
-# VALIDATION_SEED_BASE + i: above the training seeds (seed * 1000 + a counter; DaggerConfig.validate checks a bound
-# on that counter) and below the evaluation seeds.
-VALIDATION_SEED_BASE = 800_000
+# VALIDATION_SEED_BASE + i (racebench.evaluation): above the training seeds (seed * 1000 + a counter;
+# DaggerConfig.validate checks a bound on that counter) and below the evaluation seeds.
 FINAL_STUDENTS: tuple[str, ...] = ("last", "average", "best")  # DaggerConfig.final_student: what the checkpoint is
 
 
@@ -110,7 +110,7 @@ class DaggerConfig:
     # Measured from 3e-4 to 3e-5 on S and J (seed 0): no gain, fewer hard laps (experiments/distill-lr-decay/), so off.
     learning_rate_final: float | None = None
     # Decoupled weight decay of the fit (AdamW's; 0: plain Adam, as before). Why: a student fits the scenes it was
-    # fitted on better than new ones (baselines/heldout_gap.py: loss 0.060 on its last fitted iterations against 0.086
+    # fitted on better than new ones (scripts/heldout_gap.py: loss 0.060 on its last fitted iterations against 0.086
     # on the next ones), and the weight average of its last students (final_student) is the one change that helped.
     weight_decay: float = 0.0
     # Shift each fitted chunk's depth images by a random whole number of pixels, up to this many each way (the same
@@ -119,8 +119,8 @@ class DaggerConfig:
     augment_shift: int = 0
     # From this iteration on (None: never) the student's feature layers (depth CNN and state MLP) stop training: each
     # fit computes the aggregate's features once, without gradient, and trains the GRU and heads on them. Why: ~90 %
-    # of a run's hour is fitting, and the CNN's forward and backward passes are ~45 % of a fit (README, "Fewer passes
-    # for more data underfits"); the data-scaling projection (experiments/data_scaling.txt) makes the issue's targets a
+    # of a run's hour is fitting, and the CNN's forward and backward passes are ~45 % of a fit (docs/teacher-student.md,
+    # "Cost of a run"); the data-scaling projection (experiments/data_scaling.txt) makes the issue's targets a
     # matter of labelled steps per hour. What it may cost: the depth features stop improving with the later data.
     # Recurrent students; not with augment_shift (shifted images need the CNN's pass).
     freeze_features_after: int | None = None
@@ -128,7 +128,7 @@ class DaggerConfig:
     # student's GRU output and predicts the teacher's line ahead, the points 1, 2, 3 and 4 m further along it in the
     # body frame (m; :func:`line_ahead`), and each fit minimises the action MSE plus this times that prediction's
     # MSE. Why: the students see the obstacles they hit but swerve about half as much as the line needs
-    # (baselines/crash_geometry.py); asking the depth features to carry the line's bend around what is in view is
+    # (scripts/crash_geometry.py); asking the depth features to carry the line's bend around what is in view is
     # Loquercio et al. 2021's student output, here as a training signal for the paper's network. Recurrent students.
     path_aux_weight: float = 0.0
     # What that head predicts (its weight is path_aux_weight, named for the first task): "line", the teacher's line
@@ -150,7 +150,7 @@ class DaggerConfig:
     teacher_wanted_clearance: float = 0.45
     # planner-fast's integral gain (FastPlannerAgent.integral_gain). Its integral sums the cross-track errors of
     # whoever flies, the student too, so its labels depend on flight history the student cannot see; 0 makes a
-    # label a function of the current state (baselines/teacher_takeover.py measures what each does)
+    # label a function of the current state (scripts/teacher_takeover.py measures what each does)
     teacher_integral_gain: float = 4.0
     # planner-fast plans again from a student that is farther than this from its line (m; None: never)
     teacher_replan_distance: float | None = None
@@ -166,7 +166,7 @@ class DaggerConfig:
     sequence_length: int = 32  # truncated-BPTT chunk of a recurrent student, in steps
     # Loss weight of the last ``crash_window`` steps before each crash (obstacle, gate, ground or out of bounds) of a
     # collected episode (1: unweighted).
-    # Why: replayed evaluation crashes (baselines/crash_visibility.py) hit obstacles in view 0.5 s before, which the
+    # Why: replayed evaluation crashes (scripts/crash_visibility.py) hit obstacles in view 0.5 s before, which the
     # teacher, handed the controls then, avoids, so the labels exist but are few. Measured at 4 it did not help (worse
     # on Circle; baselines/experiments/distill-crash-weight/), hence off by default.
     crash_weight: float = 1.0
@@ -196,9 +196,9 @@ class DaggerConfig:
     @classmethod
     def from_yaml(cls, path: str | Path) -> DaggerConfig:
         """Load a ``method: dagger`` YAML config (``yaml.safe_load``; unknown keys are errors)."""
-        import yaml
+        from racebench.yamlfile import read_yaml
 
-        data = yaml.safe_load(Path(path).read_text())
+        data = read_yaml(path)
         if not isinstance(data, dict) or data.pop("method", None) != "dagger":
             raise ValueError(f"{path}: not a DAgger config (expected a mapping with method: dagger)")
         per_run = sorted(set(data) & {"track", "seed", "iterations"})
@@ -725,9 +725,7 @@ def choose_student(
     missing = [path for path in kept if not path.is_file()]
     if missing:
         raise ValueError(f"dagger: kept student {missing[0]} is missing: nothing to choose from")
-    model_class = type(student)
-    candidates = [(path.stem.rsplit("-", 1)[1], model_class.load(path, device="cpu").policy.state_dict())
-                  for path in kept]  # fmt: skip
+    candidates = [(path.stem.rsplit("-", 1)[1], saved_policy_state(path)) for path in kept]
     if len(candidates) >= 2:
         candidates.append(("average", average_weights([state for _, state in candidates])))
         student.policy.load_state_dict(candidates[-1][1])
@@ -1005,6 +1003,30 @@ RESOURCE_SETTINGS: tuple[str, ...] = ("update_threads",)
 KEPT_DIR = "iterations"  # in a run folder: the students kept for selection (DaggerConfig.keep_iterations)
 
 
+def saved_policy_state(path: Path) -> dict[str, torch.Tensor]:
+    """The policy weights of an SB3 zip the run saved, read as tensors only (``torch.load(weights_only=True)``):
+    the zip's pickled ``data`` is not read, so nothing in the file can run code."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    try:
+        _, params, _ = load_from_zip_file(path, load_data=False, device="cpu")
+    except (ValueError, pickle.UnpicklingError, RuntimeError) as exc:  # a bad zip, or a .pth with more than tensors
+        why = " ".join(str(exc).split())[:200]  # torch's weights_only message spans many lines
+        raise ValueError(f"dagger: {path} holds no readable policy weights ({why})") from None
+    if not params or "policy" not in params:
+        raise ValueError(f"dagger: {path} holds no policy weights")
+    return params["policy"]
+
+
+def load_optimizer_state(path: Path) -> dict[str, Any]:
+    """The optimizer, random and auxiliary-head state :func:`save_resume_state` wrote, read with
+    ``torch.load(weights_only=True)``: tensors, numbers and containers only; a file asking for more is refused."""
+    try:
+        return torch.load(path, weights_only=True)
+    except pickle.UnpicklingError:
+        raise ValueError(f"dagger: {path} holds more than tensors and numbers (weights_only refused it)") from None
+
+
 def save_resume_state(
     out: Path, iteration: int, student: Any, optimizer: Any, dataset: Dataset, rng: np.random.Generator,
     seeds: list[int], rows: list[dict[str, Any]], config: DaggerConfig, failed: list[int] | None = None,
@@ -1093,8 +1115,8 @@ def restore_state(
     head, the aggregate, the numpy generator and torch's random state, as the run left them after its last finished
     iteration."""
     folder = Path(saved["folder"])
-    student.policy.load_state_dict(type(student).load(folder / "student.zip", device="cpu").policy.state_dict())
-    extra = torch.load(folder / "optimizer.pt", weights_only=False)  # written by save_resume_state: trusted
+    student.policy.load_state_dict(saved_policy_state(folder / "student.zip"))
+    extra = load_optimizer_state(folder / "optimizer.pt")
     optimizer.load_state_dict(extra["optimizer"])
     torch.set_rng_state(extra["torch_rng"])
     if path_head is not None:
@@ -1198,6 +1220,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         atomic_write(out / "progress.csv", pd.DataFrame(rows).to_csv(index=False))
         # The student after every iteration, so a killed run leaves its latest policy behind.
         policy_model.save(out / f"{config.name}-{config.track}.zip")
+        record_written(out, out / f"{config.name}-{config.track}.zip")  # so its evaluation (a sweep's) trusts it
         if k >= config.iterations - config.keep_iterations:
             (out / KEPT_DIR).mkdir(exist_ok=True)
             policy_model.save(out / KEPT_DIR / f"{config.name}-{config.track}-it{k:03d}.zip")
@@ -1208,6 +1231,7 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         if config.keep_iterations > 0 and (config.select_episodes > 0 or config.final_student != "last"):
             selection = choose_student(out, config, policy_model, envs, (config.seed * 1000, seeds[0]))
             policy_model.save(checkpoint)  # the last iteration's student stays in iterations/
+            record_written(out, checkpoint)
     finally:
         for m in made:
             m.close()
@@ -1227,10 +1251,12 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
         summary["selection"] = selection
     if eval_episodes > 0:
         from racebench.evaluation import Evaluator
+        from racebench.training.train import own_policy_trust
 
-        result = Evaluator(  # this run's own checkpoint, written by this process: trusted
-            str(checkpoint), eval_ids, episodes=eval_episodes, out_dir=out / "eval", trust_code=True
-        ).run(progress=False)
+        result = Evaluator(  # this run's own checkpoint: trusted if what the evaluator loads is what the run wrote
+            str(checkpoint), eval_ids, episodes=eval_episodes, out_dir=out / "eval",
+            trust_code=own_policy_trust(out, checkpoint),
+        ).run(progress=False)  # fmt: skip
         columns = ("n", "successes", "success_rate", "lap_time_mean")
         own = result[result["env_id"] == env_id].iloc[0]  # the summary's rows are sorted by id
         summary["eval"] = {k: float(own[k]) for k in columns}

@@ -27,6 +27,7 @@ import csv
 import dataclasses
 import json
 import os
+import platform
 import time
 import warnings
 from collections import deque
@@ -43,13 +44,15 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList, Check
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, VecNormalize
 
+from racebench.agents import record_written, written_sha256
 from racebench.evaluation import EVAL_SEED_BASE
-from racebench.records import atomic_write
+from racebench.records import atomic_write, sha256_file
 from racebench.registration import CURRICULUM
 from racebench.sb3 import make_sb3_vec_env
 from racebench.track import BUILTIN_TRACKS
 from racebench.training.policies import ACTION_OUTPUTS, CNN_KINDS
 from racebench.vector import TEACHER_KEY
+from racebench.yamlfile import read_yaml
 
 BASELINES: tuple[str, ...] = (
     "vision-ppo",
@@ -69,7 +72,7 @@ BC_TARGETS: tuple[str, ...] = ("init", "teacher")  # TrainConfig.bc_target: the 
 def baseline_path(name_or_path: str | Path) -> Path:
     """Resolve a built-in baseline name (:data:`BASELINES`) or a YAML file path to a path."""
     if str(name_or_path) in BASELINES:
-        return Path(str(resources.files("racebench.baselines").joinpath(f"{name_or_path}.yaml")))
+        return Path(str(resources.files("racebench.configs").joinpath(f"{name_or_path}.yaml")))
     path = Path(name_or_path)
     if not path.is_file():
         raise ValueError(
@@ -82,7 +85,7 @@ def load_config(name_or_path: str | Path) -> Any:
     """A training config by built-in name or YAML path: :class:`TrainConfig` (PPO, the default ``method``) or,
     for ``method: dagger``, :class:`racebench.training.dagger.DaggerConfig`."""
     path = baseline_path(name_or_path)
-    data = yaml.safe_load(path.read_text())
+    data = read_yaml(path)
     if isinstance(data, dict) and data.get("method", "ppo") == "dagger":
         from racebench.training.dagger import DaggerConfig
 
@@ -92,17 +95,18 @@ def load_config(name_or_path: str | Path) -> Any:
 
 def run_training(
     config: Any, track: str, steps: int, seed: int, out: str | Path | None, resume: str | Path | None = None,
-    eval_episodes: int = 10, device: str = "auto", checkpoint_every: int = 50_000,
+    eval_episodes: int = 10, device: str = "auto", checkpoint_every: int = 50_000, trust_code: bool = False,
 ) -> dict[str, Any]:  # fmt: skip
     """Train ``config`` (from :func:`load_config`) on ``track``: PPO through :func:`train`, DAgger through
     :func:`racebench.training.dagger.distill` with ``ceil(steps / steps_per_iteration)`` iterations. As for
     PPO, with ``resume`` the ``steps`` are the steps to add; a DAgger run resumes from its run folder (its
-    whole state is kept there, not in a zip), so ``resume`` must name that folder."""
+    whole state is kept there, not in a zip), so ``resume`` must name that folder. ``trust_code``: see :func:`train`
+    (a DAgger resume reads tensors and arrays only and needs no trust)."""
     from racebench.training.dagger import DaggerConfig, completed_iterations, distill
 
     if not isinstance(config, DaggerConfig):
         return train(config, track, steps, seed, out, resume, checkpoint_every=checkpoint_every,
-                     eval_episodes=eval_episodes, device=device)  # fmt: skip
+                     eval_episodes=eval_episodes, device=device, trust_code=trust_code)  # fmt: skip
     folder = Path(out) if out is not None else Path("runs") / f"{config.name}-{track}-seed{seed}"
     if resume is not None and Path(resume).resolve() != folder.resolve():
         raise ValueError(f"a DAgger run resumes from its own folder: pass --resume {folder} (or the same --out)")
@@ -187,7 +191,7 @@ class TrainConfig:
         """Load and validate a config file or a built-in baseline name (``"vision-ppo"``, ...; see
         :data:`BASELINES`) with ``yaml.safe_load``; unknown keys are errors."""
         path = baseline_path(path)
-        data = yaml.safe_load(path.read_text())
+        data = read_yaml(path)
         if not isinstance(data, dict):
             raise ValueError(f"{path}: expected a mapping at the top level")
         method = data.pop("method", "ppo")
@@ -490,15 +494,29 @@ class AtomicCheckpointCallback(CheckpointCallback):
     archive nests torch's own zip files (``policy.pth``), a truncated one can still open as the *inner*
     archive, without the model's data, and the resumed run failed. Each file is written beside its final
     name and renamed into place; the reward statistics come first, so a checkpoint's zip implies its pkl.
+    With ``run_dir`` each file's sha256 is recorded in that folder's :data:`~racebench.agents.WRITTEN_FILE` once
+    it is in place, so resuming from it trusts it without ``--trust-code``.
     """
+
+    def __init__(self, *args: Any, run_dir: str | Path | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.run_dir = run_dir
 
     def _on_step(self) -> bool:
         if self.n_calls % self.save_freq == 0:
             normalizer = self.model.get_vec_normalize_env()
             if self.save_vecnormalize and normalizer is not None:
-                _save_atomically(Path(self._checkpoint_path("vecnormalize_", extension="pkl")), normalizer.save)
-            _save_atomically(Path(self._checkpoint_path(extension="zip")), self.model.save)
+                stats = Path(self._checkpoint_path("vecnormalize_", extension="pkl"))
+                _save_atomically(stats, normalizer.save)
+                self._record(stats)
+            checkpoint = Path(self._checkpoint_path(extension="zip"))
+            _save_atomically(checkpoint, self.model.save)
+            self._record(checkpoint)
         return True
+
+    def _record(self, path: Path) -> None:
+        if self.run_dir is not None:
+            record_written(self.run_dir, path)
 
 
 def _save_atomically(path: Path, save: Any) -> None:
@@ -716,7 +734,8 @@ def policy_weights(path: str | Path, model: Any) -> dict[str, torch.Tensor]:
     try:
         _, params, _ = load_from_zip_file(path, load_data=False, device=model.device)
     except Exception as exc:  # noqa: BLE001 - a bad archive is named, whatever the zip/torch error
-        raise ValueError(f"init_from: {path} is not an SB3 checkpoint ({type(exc).__name__}: {exc})") from None
+        why = " ".join(str(exc).split())[:300]  # torch's weights_only refusal spans many lines
+        raise ValueError(f"init_from: {path} is not an SB3 checkpoint ({type(exc).__name__}: {why})") from None
     weights = params.get("policy") if params else None
     if weights is None:
         raise ValueError(f"init_from: {path} holds no policy weights")
@@ -896,11 +915,17 @@ def train(
     checkpoint_every: int = 50_000,
     eval_episodes: int = 10,
     device: str = "auto",
+    trust_code: bool = False,
 ) -> dict[str, Any]:
     """Train one baseline on one track; returns a summary (paths, steps, wall time, samples/s, evaluation).
 
     ``device``: where the networks live (``"auto"``: CUDA when torch sees a GPU); the envs always step on CPU
     worker processes (``config.num_processes``), so the same config runs unchanged on a GPU machine.
+
+    ``resume``: an SB3 checkpoint to continue from. It and its ``VecNormalize`` statistics are pickles, loaded
+    under the evaluator's rule (:func:`racebench.agents.require_trusted`): with ``trust_code``, if shipped, or if
+    this run folder (``out``) wrote them itself, as listed in its :data:`~racebench.agents.WRITTEN_FILE` (every
+    checkpoint and statistics file a run writes is recorded there); anything else is refused before it is read.
     """
     if track not in BUILTIN_TRACKS:
         raise ValueError(f"track must be one of {BUILTIN_TRACKS}, got {track!r}")
@@ -928,7 +953,11 @@ def train(
             load_policy_weights(model, init_from, config.log_std_init)
         level, promotions, started_at = config.start_level, [], 0
     else:
-        model = _load_model(resume, resolve_device(device))
+        written = written_sha256(out)
+        # The checkpoint and its statistics are both checked before either is unpickled.
+        stats = _trusted_reward_stats(Path(resume), trust_code, written) if config.normalize_reward else None
+        model = _load_model(resume, resolve_device(device), trust_code, written)
+        restore_schedules(model, config)
         started_at = model.num_timesteps
         archive_finished_part(out, started_at)
         level, promotions = resume_curriculum(out, started_at, config.start_level)
@@ -940,7 +969,7 @@ def train(
             )
         # New env seeds, so the resumed run does not replay the scenes its first part began with.
         env = make_envs(config, track, resume_seed(seed, started_at, config.n_envs))
-        _restore_reward_stats(env, Path(resume))
+        _restore_reward_stats(env, stats)
         if level != config.start_level:
             env.env_method("set_task", **config.level_kwargs(level))  # applies at the reset in set_env
         model.set_env(env)
@@ -969,6 +998,7 @@ def train(
                 str(out / "checkpoints"),
                 config.name,
                 save_vecnormalize=True,
+                run_dir=out,
             ),
             ThreadsCallback(config.torch_threads, config.update_threads),
             *([CriticWarmupCallback(config.critic_warmup)] if config.critic_warmup else []),
@@ -980,8 +1010,10 @@ def train(
     wall = time.perf_counter() - started
     final = out / f"{config.name}-{track}.zip"
     model.save(final)
+    record_written(out, final)
     if isinstance(env, VecNormalize):
         env.save(str(out / "vecnormalize.pkl"))
+        record_written(out, out / "vecnormalize.pkl")
     curriculum.save_state()
     env.close()
     summary: dict[str, Any] = {
@@ -999,6 +1031,9 @@ def train(
         # and to the first time the rolling success at the last level reached promote_at.
         "time_to_solve": {"promotions": curriculum.promotions, "solved": curriculum.solved},
         "device": str(model.device),
+        "machine": machine_description(),
+        # The load averages (1, 5, 15 min) as training ended: a run that shared its cores is slower per step.
+        "load_at_end": [round(x, 2) for x in os.getloadavg()],
         "checkpoint": str(final),
         "init_from": init_from,
     }
@@ -1007,13 +1042,25 @@ def train(
     if eval_episodes > 0:
         from racebench.evaluation import Evaluator
 
-        evaluator = Evaluator(  # this run's own checkpoint, written by this process: trusted
-            str(final), [f"RaceObs-{track}-v0"], episodes=eval_episodes, out_dir=out / "eval", trust_code=True
-        )
+        evaluator = Evaluator(  # this run's own checkpoint, trusted if what it loads is what this run wrote
+            str(final), [f"RaceObs-{track}-v0"], episodes=eval_episodes, out_dir=out / "eval",
+            trust_code=own_policy_trust(out, final, trust_code),
+        )  # fmt: skip
         result = evaluator.run(progress=False).iloc[0]
         summary["eval"] = {k: _plain(result[k]) for k in ("n", "successes", "success_rate", "lap_time_mean")}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def machine_description() -> dict[str, Any]:
+    """The machine a run trained on: CPU model, cores, OS and the torch version (a summary's wall clock needs it)."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as info:
+            cpu = next((line.split(":", 1)[1].strip() for line in info if line.startswith("model name")), cpu)
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "os": platform.platform(), "torch": torch.__version__}
 
 
 def archive_finished_part(out: Path, started_at: int) -> list[Path]:
@@ -1041,27 +1088,81 @@ def archive_finished_part(out: Path, started_at: int) -> list[Path]:
     return [target for _, target in moves]
 
 
-def _restore_reward_stats(env: VecEnv, checkpoint: Path) -> None:
-    """Load the reward-normalisation statistics saved beside ``checkpoint`` (if any) into ``env``.
+def own_policy_trust(out: str | Path, checkpoint: str | Path, trust_code: bool = False) -> bool:
+    """The ``trust_code`` of the evaluation of a run's own final ``checkpoint``: whether the run folder ``out`` wrote
+    it (its :data:`~racebench.agents.WRITTEN_FILE` lists its sha256), or ``trust_code`` itself.
 
-    ``CheckpointCallback`` writes ``<prefix>_vecnormalize_<n>_steps.pkl`` next to ``<prefix>_<n>_steps.zip``;
-    a final model has ``vecnormalize.pkl`` in its run folder. Without them the resumed run re-estimates the
-    return scale from scratch, which briefly changes the size of the advantages.
+    The ``VecNormalize`` statistics the evaluator would read beside it must be the run's too: statistics copied
+    into the folder are refused (:class:`~racebench.agents.UntrustedCodeError`) rather than unpickled.
     """
-    from racebench.agents import vecnormalize_path  # the same files the evaluator's SB3 loader reads
+    from racebench.agents import require_trusted, vecnormalize_path
 
-    if not isinstance(env, VecNormalize):
-        return
+    if trust_code:
+        return True
+    written, checkpoint = written_sha256(out), Path(checkpoint)
     stats = vecnormalize_path(checkpoint)
     if stats is not None:
-        saved = VecNormalize.load(str(stats), env.venv)
+        require_trusted(stats, stats.read_bytes(), "VecNormalize statistics beside the checkpoint are unpickled",
+                        written=written, what="statistics")  # fmt: skip
+    return checkpoint.is_file() and sha256_file(checkpoint) in written
+
+
+def _trusted_reward_stats(checkpoint: Path, trust_code: bool, written: frozenset[str]) -> tuple[Path, bytes] | None:
+    """The statistics file saved beside ``checkpoint`` and its bytes, checked under the trust rule; ``None`` if none.
+
+    ``CheckpointCallback`` writes ``<prefix>_vecnormalize_<n>_steps.pkl`` next to ``<prefix>_<n>_steps.zip``;
+    a final model has ``vecnormalize.pkl`` in its run folder (:func:`racebench.agents.vecnormalize_path`).
+    """
+    from racebench.agents import require_trusted, vecnormalize_path  # the same files the evaluator's loader reads
+
+    path = vecnormalize_path(checkpoint)
+    if path is None:
+        return None
+    data = path.read_bytes()
+    require_trusted(path, data, "VecNormalize statistics beside the checkpoint are unpickled", trust_code, written,
+                    what="statistics")  # fmt: skip
+    return path, data
+
+
+def _restore_reward_stats(env: VecEnv, stats: tuple[Path, bytes] | None) -> None:
+    """Load the reward-normalisation statistics (:func:`_trusted_reward_stats`) into ``env``, if both have them.
+
+    Without them the resumed run re-estimates the return scale from scratch, which briefly changes the size of
+    the advantages.
+    """
+    from racebench.agents import load_vecnormalize_statistics
+
+    if isinstance(env, VecNormalize) and stats is not None:
+        saved = load_vecnormalize_statistics(*stats)
         env.ret_rms = saved.ret_rms  # rewards only: the policy never sees normalised observations
 
 
-def _load_model(path: str | Path, device: str = "cpu") -> Any:
-    from racebench.agents import SB3Agent
+def restore_schedules(model: Any, config: TrainConfig) -> None:
+    """Rebuild a resumed model's learning-rate and clip-range schedules from its config.
 
-    return SB3Agent._load(Path(path), device)  # the user's own run to resume: loaded as trusted
+    SB3 pickles them with cloudpickle; a checkpoint written under another cloudpickle version (e.g. a venv without
+    Ray's pin) loads without them, SB3 only warns, and training would go on at the class defaults (PPO's constant
+    3e-4). The config is the source of truth for both.
+    """
+    from stable_baselines3.common.utils import FloatSchedule
+
+    model.learning_rate = linear_schedule(*config.learning_rate)
+    model._setup_lr_schedule()
+    model.clip_range = FloatSchedule(config.clip_range)
+
+
+def _load_model(
+    path: str | Path, device: str = "cpu", trust_code: bool = False, written: frozenset[str] = frozenset()
+) -> Any:  # fmt: skip
+    """The SB3 model of a checkpoint to resume, unpickled only under the trust rule (see :func:`train`)."""
+    from racebench.agents import AgentLoadError, SB3Agent, require_trusted
+
+    path = Path(path)
+    if not path.is_file():
+        raise AgentLoadError(f"checkpoint {str(path)!r} to resume does not exist")
+    data = path.read_bytes()  # hashed and loaded from the same bytes
+    require_trusted(path, data, "an SB3 checkpoint is unpickled when resumed", trust_code, written)
+    return SB3Agent._load(path, device, data)
 
 
 def resume_seed(seed: int, timesteps: int, n_envs: int) -> int:

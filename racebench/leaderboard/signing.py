@@ -1,0 +1,294 @@
+"""Signed verification results: the verified tier without trusting whoever built the site.
+
+A verification re-flies each ONNX policy of a method entry on the **private** seeds of the maintainers' secret salt
+and condenses the private records (which stay outside the repository) into a payload: per env id k/n and the lap
+times, the policy file's sha256, the env version, the seed protocol, the salt's fingerprint and the sha256 of the
+private records. The maintainers sign its canonical JSON with their Ed25519 key (:func:`sign_entry`) into
+``results/leaderboard/<entry>/verified.json``.
+
+``leaderboard build`` accepts it (:func:`check_verified`) only if the public key committed in ``leaderboard.yaml``
+is the one whose fingerprint is pinned here (:data:`MAINTAINERS_KEY_SHA256`: a key swapped into the YAML by a pull
+request is refused), the signature checks (an edited count is refused), every policy of the entry is signed and its
+file still hashes to the signed sha256 (a swapped file is refused), and the env version and salt are current.
+Private-seed records alone, however plausible, never make an entry verified: forging them needs no secret, forging
+a signature needs the private key.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import math
+import statistics
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from racebench.leaderboard.entries import Cell, Entry, check_seed_prefixes, file_sha256
+from racebench.registration import ENV_VERSION
+
+VERIFIED_FILE = "verified.json"
+SIGNED_FORMAT = 1
+#: sha256 of the raw 32-byte Ed25519 public key of the racebench maintainers (its PEM is in leaderboard.yaml).
+#: Pinned in the package so that a pull request which swaps the key in the YAML cannot also swap what it is
+#: checked against; rotating the key is a change to this line, reviewed as code.
+MAINTAINERS_KEY_SHA256 = "bd807efa2db4e425ba7dac0d02f357f365d462765ca6ffe7fd7356402bb3cef7"
+
+
+class SignatureError(ValueError):
+    """A signed result is refused; the message names the entry and why."""
+
+
+@dataclass(frozen=True)
+class VerifiedResult:
+    """A signed result that checked: the signed own-track cells per track and the payload behind them."""
+
+    entry: str
+    cells: dict[str, Cell]  # track -> the signed cell of its policy on the track's main id
+    payload: dict[str, Any]
+
+
+def canonical(payload: Mapping[str, Any]) -> bytes:
+    """The bytes that are signed: sorted keys, no whitespace, ASCII, no NaN (one spelling per payload)."""
+    return json.dumps(payload, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False).encode()
+
+
+def public_key_sha256(public_key: Any) -> str:
+    """The fingerprint of an Ed25519 public key: sha256 of its 32 raw bytes."""
+    from cryptography.hazmat.primitives import serialization
+
+    raw = public_key.public_bytes(serialization.Encoding.Raw, serialization.PublicFormat.Raw)
+    return hashlib.sha256(raw).hexdigest()
+
+
+def load_public_key(pem: str) -> Any:
+    """An Ed25519 public key from its PEM text; :class:`SignatureError` otherwise."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
+    try:
+        key = serialization.load_pem_public_key(pem.encode())
+    except (ValueError, TypeError) as exc:
+        raise SignatureError(f"the public key in leaderboard.yaml is not a PEM public key ({exc})") from exc
+    if not isinstance(key, Ed25519PublicKey):
+        raise SignatureError("the public key in leaderboard.yaml is not an Ed25519 key")
+    return key
+
+
+def load_private_key(path: str | Path) -> Any:
+    """The maintainers' Ed25519 private key (PKCS#8 PEM, unencrypted); errors never show the key's bytes."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+    try:
+        key = serialization.load_pem_private_key(Path(path).read_bytes(), password=None)
+    except OSError as exc:
+        raise SignatureError(f"--key {str(path)!r}: unreadable ({exc.strerror})") from exc
+    except (ValueError, TypeError) as exc:
+        raise SignatureError(f"--key {str(path)!r}: not an unencrypted PKCS#8 PEM private key") from exc
+    if not isinstance(key, Ed25519PrivateKey):
+        raise SignatureError(f"--key {str(path)!r}: not an Ed25519 key")
+    return key
+
+
+def records_sha256(records: Sequence[dict[str, Any]]) -> str:
+    """sha256 of the records' own digests in (env id, seed) order: pins the private records without publishing them."""
+    ordered = sorted(records, key=lambda r: (r["env_id"], int(r["seed"])))
+    return hashlib.sha256("\n".join(r["digest"] for r in ordered).encode()).hexdigest()
+
+
+def cell_payload(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """k/n and lap statistics of one env id's records (lap times in seed order, rounded to the microsecond)."""
+    ordered = sorted(records, key=lambda r: int(r["seed"]))
+    laps = [round(float(r["lap_time"]), 6) for r in ordered if r["success"]]
+    return {
+        "n": len(ordered),
+        "successes": sum(bool(r["success"]) for r in ordered),
+        "lap_times": laps,
+        "lap_time_mean": round(statistics.fmean(laps), 6) if laps else None,
+        "lap_time_std": round(statistics.stdev(laps), 6) if len(laps) > 1 else None,
+        "lap_time_median": round(statistics.median(laps), 6) if laps else None,
+    }
+
+
+def build_payload(entry: Entry, private_records: Mapping[str, Sequence[dict[str, Any]]], salt: str) -> dict[str, Any]:
+    """The payload of ``entry`` from each track's private records (validated: ONNX, this salt, first n seeds, clean).
+
+    ``private_records``: track key of the entry (``S``, ``Circle``, ``J`` or ``all``) -> that policy's records.
+    """
+    from racebench.leaderboard.seeds import salt_sha256
+
+    fingerprint = salt_sha256(salt)
+    policies = []
+    for track, policy in entry.policies.items():
+        if policy.onnx is None:
+            raise SignatureError(f"{entry.name}: its {track} policy has no ONNX file: only ONNX policies are verified")
+        records = list(private_records.get(track, ()))
+        if not records:
+            raise SignatureError(f"{entry.name}: no private records of its {track} policy")
+        for record in records:
+            problem = None
+            if record["policy_sha256"] != policy.onnx_sha256:
+                problem = f"is of another policy (sha256 {record['policy_sha256'][:12]}…)"
+            elif record["seed_set"] != "private" or record.get("seed_salt_sha256") != fingerprint:
+                problem = "is not on the private seeds of this salt"
+            elif record["env_version"] != ENV_VERSION:
+                problem = f"is of env version {record['env_version']}, this racebench is {ENV_VERSION}"
+            elif record["git_dirty"]:
+                problem = "was made from uncommitted code (git_dirty): evaluate from a clean checkout"
+            elif record["privileged"]:
+                problem = "is privileged"
+            if problem:
+                raise SignatureError(
+                    f"{entry.name}: a {track} record ({record['env_id']}, seed {record['seed']}) {problem}"
+                )
+        check_seed_prefixes(entry.name, records, salt)  # every episode flown, none picked
+        by_id: dict[str, list[dict[str, Any]]] = {}
+        for record in records:
+            by_id.setdefault(record["env_id"], []).append(record)
+        missing = [i for i in policy.main_ids if i not in by_id]
+        if missing:
+            raise SignatureError(f"{entry.name}: its {track} policy has no private records on {missing}")
+        policies.append(
+            {
+                "track": track,
+                "policy": policy.onnx,
+                "policy_sha256": policy.onnx_sha256,
+                "cells": {env_id: cell_payload(group) for env_id, group in sorted(by_id.items())},
+                "records_sha256": records_sha256(records),
+                "git_commits": sorted({r["git_commit"] for r in records}),
+            }
+        )
+    protocols = {int(r["seed_protocol"]) for group in private_records.values() for r in group}
+    if len(protocols) != 1:
+        raise SignatureError(f"{entry.name}: private records of several seed protocols {sorted(protocols)}")
+    return {
+        "format": SIGNED_FORMAT,
+        "entry": entry.name,
+        "env_version": ENV_VERSION,
+        "seed_set": "private",
+        "seed_protocol": protocols.pop(),
+        "seed_salt_sha256": fingerprint,
+        "policies": policies,
+    }
+
+
+def sign_payload(payload: Mapping[str, Any], private_key: Any) -> dict[str, Any]:
+    """The ``verified.json`` document: the payload, its Ed25519 signature and the signing key's fingerprint."""
+    signature = private_key.sign(canonical(payload))
+    return {
+        "payload": dict(payload),
+        "signature": base64.b64encode(signature).decode(),
+        "key_sha256": public_key_sha256(private_key.public_key()),
+    }
+
+
+def sign_entry(
+    entry: Entry, salt: str, key_path: str | Path, private_dir: str | Path, episodes: int = 50, workers: int = 1
+) -> Path:
+    """Fly each ONNX policy of ``entry`` on its own main ids' private seeds into ``private_dir/<entry>-<track>``
+    (resumable: records already there are reused), sign the result and write ``<entry folder>/verified.json``.
+
+    ``private_dir`` must lie outside the repository: private seeds and records are never committed.
+    """
+    from racebench.evaluation import Evaluator
+    from racebench.records import read_folder
+
+    key = load_private_key(key_path)
+    private_dir = Path(private_dir).resolve()
+    if private_dir.is_relative_to(entry.root.resolve()):
+        raise SignatureError(f"--private-records {str(private_dir)!r} lies inside the repository; the private "
+                             "records must stay outside it")  # fmt: skip
+    private: dict[str, list[dict[str, Any]]] = {}
+    for track, policy in entry.policies.items():
+        if policy.onnx is None:
+            raise SignatureError(f"{entry.name}: its {track} policy has no ONNX file: only ONNX policies are verified")
+        out = private_dir / f"{entry.name}-{track}"
+        earlier = read_folder(out).sorted_records() if out.is_dir() else []
+        # Resuming keeps the label the earlier records carry (the evaluator refuses two labels in one folder).
+        label = earlier[0]["agent"] if earlier else f"{entry.name}-{track}"
+        evaluator = Evaluator(
+            str(entry.root / policy.onnx), list(policy.main_ids), episodes=episodes, out_dir=out, workers=workers,
+            agent_name=label, seed_set="private", salt=salt,
+        )  # fmt: skip
+        evaluator.run(progress=False)
+        wanted = {(env_id, seed) for env_id in policy.main_ids for seed in evaluator.seeds}
+        found = read_folder(out)
+        if found.problems:
+            raise SignatureError(f"{entry.name}: invalid private record {found.problems[0].error()}")
+        records = [record for record in found.sorted_records() if (record["env_id"], record["seed"]) in wanted]
+        private[track] = records
+    document = sign_payload(build_payload(entry, private, salt), key)
+    path = entry.folder / VERIFIED_FILE
+    path.write_text(json.dumps(document, indent=1, sort_keys=True) + "\n")
+    return path
+
+
+def check_verified(entry: Entry, config: Mapping[str, Any], pinned_key_sha256: str | None = None) -> VerifiedResult:
+    """Check ``entry``'s ``verified.json`` against the pinned key; :class:`SignatureError` names why it is refused."""
+    pinned_key_sha256 = pinned_key_sha256 or MAINTAINERS_KEY_SHA256  # read now: tests pin their own key
+    path = entry.folder / VERIFIED_FILE
+    if not path.is_file():
+        raise SignatureError(f"{entry.name}: no signed result ({VERIFIED_FILE})")
+    try:
+        document = json.loads(path.read_text())
+        payload, signature = document["payload"], base64.b64decode(document["signature"], validate=True)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SignatureError(f"{entry.name}: {VERIFIED_FILE} is not a signed result ({exc})") from exc
+    pem = config.get("maintainers_public_key")
+    if not isinstance(pem, str):
+        raise SignatureError(f"{entry.name}: leaderboard.yaml has no maintainers_public_key to check the signature")
+    public_key = load_public_key(pem)
+    if public_key_sha256(public_key) != pinned_key_sha256:
+        raise SignatureError(
+            f"{entry.name}: the public key in leaderboard.yaml (sha256 {public_key_sha256(public_key)[:12]}…) is not "
+            f"the maintainers' key pinned in racebench (sha256 {pinned_key_sha256[:12]}…): signature not trusted"
+        )
+    from cryptography.exceptions import InvalidSignature
+
+    try:
+        public_key.verify(signature, canonical(payload))
+    except (InvalidSignature, ValueError, TypeError) as exc:
+        raise SignatureError(
+            f"{entry.name}: the signature of {VERIFIED_FILE} does not check against the maintainers' key "
+            "(the result was edited after signing, or signed by another key)"
+        ) from exc
+    # Signed, so the payload is the maintainers' own words: what remains is whether it still describes this entry.
+    if payload.get("format") != SIGNED_FORMAT or payload.get("entry") != entry.name:
+        raise SignatureError(f"{entry.name}: the signed result is of entry {payload.get('entry')!r}")
+    if payload.get("env_version") != ENV_VERSION:
+        raise SignatureError(
+            f"{entry.name}: signed on env version {payload.get('env_version')}, this racebench is {ENV_VERSION}: "
+            "verify again"
+        )
+    if payload.get("seed_salt_sha256") not in config.get("private_salt_sha256", []):
+        raise SignatureError(f"{entry.name}: signed on the seeds of a salt not listed in leaderboard.yaml")
+    signed = {p["track"]: p for p in payload["policies"]}
+    if set(signed) != set(entry.policies):
+        raise SignatureError(
+            f"{entry.name}: the signed result covers tracks {sorted(signed)}, the entry has {sorted(entry.policies)}"
+        )
+    cells: dict[str, Cell] = {}
+    for track, policy in entry.policies.items():
+        mine = signed[track]
+        if policy.onnx != mine["policy"]:
+            raise SignatureError(
+                f"{entry.name}: the {track} policy is {policy.onnx!r}, the signed one {mine['policy']!r}"
+            )
+        actual = file_sha256(entry.root / policy.onnx) if (entry.root / policy.onnx).is_file() else "missing"
+        if actual != mine["policy_sha256"]:
+            raise SignatureError(
+                f"{entry.name}: the policy file {policy.onnx} (sha256 {actual[:12]}…) is not the one signed "
+                f"(sha256 {mine['policy_sha256'][:12]}…): swapped after signing"
+            )
+        for env_id in policy.main_ids:
+            c = mine["cells"].get(env_id)
+            if c is None:
+                raise SignatureError(f"{entry.name}: the signed result has no {env_id} cell for its {track} policy")
+            laps = tuple(float(t) for t in c["lap_times"])
+            if not (0 <= c["successes"] <= c["n"] and len(laps) == c["successes"] and all(map(math.isfinite, laps))):
+                raise SignatureError(f"{entry.name}: the signed {env_id} cell is inconsistent")
+            cells[env_id] = Cell(env_id, "private", c["n"], c["successes"], laps)
+    return VerifiedResult(entry.name, cells, payload)

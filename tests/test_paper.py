@@ -1,0 +1,156 @@
+"""``racebench paper-tables``: the statistics it rests on against textbook values, the claims' verdicts on hand-made
+episodes, and the committed ``results/`` regenerated from the committed records byte for byte."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from racebench.cli import main
+from racebench.paper import (
+    README_BEGIN,
+    README_END,
+    cell,
+    judge_claims,
+    replace_readme_block,
+    write_report,
+)
+from racebench.registration import DENSITIES, GATE_SHIFTS
+from racebench.statistics import holm_adjust, trend_test
+
+ROOT = Path(__file__).parents[1]
+TRACKS = ("S", "Circle", "J")
+
+
+def test_holm_adjustment_matches_the_step_down_rule() -> None:
+    # sorted 0.005, 0.01, 0.03, 0.04 -> x4, x3, x2, x1 = 0.02, 0.03, 0.06, 0.04 -> running max 0.02, 0.03, 0.06, 0.06
+    assert holm_adjust([0.01, 0.04, 0.03, 0.005]) == pytest.approx([0.03, 0.06, 0.06, 0.02])
+    assert holm_adjust([0.5, 0.9]) == pytest.approx([1.0, 1.0])  # capped at 1
+    assert holm_adjust([]) == []
+
+
+def test_trend_test_matches_agrestis_alcohol_and_malformation_example() -> None:
+    """Agresti, Categorical Data Analysis (3rd ed.), infant malformation against the mother's alcohol consumption
+    (scores 0, 0.5, 1.5, 4, 7): the linear trend statistic is M^2 = 6.57, z = 2.56, one-sided P = 0.005."""
+    present, absent = [48, 38, 5, 1, 1], [17066, 14464, 788, 126, 37]
+    trials = [p + a for p, a in zip(present, absent, strict=True)]
+    z, p_down, p_up = trend_test([([0, 0.5, 1.5, 4.0, 7.0], present, trials)])
+    assert z == pytest.approx(2.563, abs=2e-3) and z**2 == pytest.approx(6.57, abs=0.01)
+    assert p_up == pytest.approx(0.0052, abs=2e-4) and p_down == pytest.approx(1 - p_up)
+
+
+def test_trend_test_is_n_r_squared_and_strata_add_up() -> None:
+    rng = np.random.default_rng(0)
+    scores = np.repeat([2.0, 3.0, 4.0, 5.0], 50)
+    outcome = rng.random(scores.size) < np.interp(scores, [2, 5], [0.9, 0.4])
+    successes = [int(outcome[scores == s].sum()) for s in (2, 3, 4, 5)]
+    z, p_down, _ = trend_test([([2, 3, 4, 5], successes, [50] * 4)])
+    r = np.corrcoef(scores, outcome.astype(float))[0, 1]
+    assert z**2 == pytest.approx(scores.size * r**2) and z < 0 and p_down < 0.01
+    twice, _, _ = trend_test([([2, 3, 4, 5], successes, [50] * 4)] * 2)
+    assert twice == pytest.approx(z * np.sqrt(2))  # two identical strata: statistic x2, variance x2
+    assert trend_test([([1, 2], [3, 3], [3, 3])]) == (0.0, 1.0, 1.0)  # all alike: no evidence either way
+
+
+def episodes_of(method: str, env_id: str, successes: int, n: int = 100, seed: int = 0, order=None) -> pd.DataFrame:
+    """``n`` hand-made episodes of ``method`` on ``env_id`` (seeds 1_000_000 + i), the first ``successes`` successful
+    (or those at ``order``'s first positions)."""
+    track, _, variant = env_id.removeprefix("RaceObs-").removesuffix("-v0").partition("-")
+    won = np.zeros(n, bool)
+    won[(order if order is not None else np.arange(n))[:successes]] = True
+    return pd.DataFrame({
+        "method": method, "training_seed": seed, "env_id": env_id, "track": track, "variant": variant or "default",
+        "seed": 1_000_000 + np.arange(n), "success": won, "lap_time": np.where(won, 4.0, np.nan),
+    })  # fmt: skip
+
+
+def hand_made_campaign() -> pd.DataFrame:
+    """vision-ppo clearly beats state-ppo (holds), clearly loses to vision-com (opposite), equals vision-no-gru on
+    shuffled scenes (not separable); one-step at 2 %; success falls with density, not with gate shift."""
+    rng = np.random.default_rng(1)
+    frames = []
+    for track in TRACKS:
+        main_id = f"RaceObs-{track}-v0"
+        frames += [
+            episodes_of("vision-ppo", main_id, 60),
+            episodes_of("state-ppo", main_id, 20),
+            episodes_of("vision-com", main_id, 95),
+            episodes_of("vision-no-gru", main_id, 60, order=rng.permutation(100)),
+            episodes_of("vision-no-avoid", main_id, 58, order=rng.permutation(100)),
+            episodes_of("vision-one-step", main_id, 2),
+        ]
+        for level, d in enumerate(DENSITIES):
+            frames.append(episodes_of("vision-ppo", f"RaceObs-{track}-Density{d}-v0", 45 - 10 * level, n=50))
+        for s in GATE_SHIFTS:
+            frames.append(episodes_of("vision-ppo", f"RaceObs-{track}-GateShift{s}-v0", 30, n=50))
+    return pd.concat(frames, ignore_index=True)
+
+
+def test_claims_get_the_verdict_the_rule_gives() -> None:
+    verdicts = {claim.claim: claim for claim in judge_claims(hand_made_campaign())}
+    assert verdicts["vision-ppo > state-ppo"].verdict == "holds"
+    assert verdicts["vision-ppo > vision-com"].verdict == "opposite"
+    assert verdicts["vision-ppo > vision-no-gru"].verdict == "does not hold at this budget"
+    assert verdicts["vision-ppo > vision-no-avoid"].verdict == "does not hold at this budget"
+    assert verdicts["vision-ppo > vision-one-step"].verdict == "holds"
+    assert verdicts["vision-one-step fails"].verdict == "holds"
+    assert verdicts["vision-ppo: success falls with density 2-5"].verdict == "holds"
+    assert verdicts["vision-ppo: success falls with gate shift 0.3-1.0 m"].verdict == "does not hold at this budget"
+    held = verdicts["vision-ppo > state-ppo"]
+    assert held.p_holm >= held.p and "S 60 vs 20" in held.evidence
+
+
+def test_a_difference_claim_needs_the_same_direction_on_every_track_and_seed_pair() -> None:
+    """Pooled, vision-ppo beats state-ppo by far; but on J a second training seed of vision-ppo does worse than
+    state-ppo: the claim does not hold, whatever the pooled p."""
+    frames = [hand_made_campaign(), episodes_of("vision-ppo", "RaceObs-J-v0", 10, seed=1)]
+    verdicts = {claim.claim: claim.verdict for claim in judge_claims(pd.concat(frames, ignore_index=True))}
+    assert verdicts["vision-ppo > state-ppo"] == "does not hold at this budget"
+
+
+def test_missing_runs_are_named_not_judged() -> None:
+    frame = hand_made_campaign()
+    claims = judge_claims(frame[frame["method"] != "vision-com"])
+    verdicts = {claim.claim: claim.verdict for claim in claims}
+    assert verdicts["vision-ppo > vision-com"] == "not tested (missing runs)"
+    assert verdicts["vision-ppo > state-ppo"] == "holds"
+
+
+def test_a_cell_of_several_training_seeds_shows_their_mean_and_range() -> None:
+    frame = pd.concat([episodes_of("m", "RaceObs-S-v0", k, seed=i) for i, k in enumerate((70, 80, 90))])
+    found = cell(frame, "m", "RaceObs-S-v0")
+    assert (found.seeds, found.success_rate, found.low, found.high) == (3, pytest.approx(0.8), 0.7, 0.9)
+    assert found.text(100) == "80 (3 seeds 70–90) · paper 100"
+    one = cell(frame[frame["training_seed"] == 0], "m", "RaceObs-S-v0")
+    assert one.text() == "70 [60–78]" and one.text(3.4, lap=True) == "4.00 · paper 3.4"  # Wilson 70/100
+
+
+def test_the_readme_block_is_replaced_between_its_markers_only() -> None:
+    text = f"head\n{README_BEGIN}\nold\n{README_END}\ntail\n"
+    assert replace_readme_block(text, "new\n") == f"head\n{README_BEGIN}\nnew\n{README_END}\ntail\n"
+    with pytest.raises(ValueError, match="no <!-- results-at-a-glance:begin -->"):
+        replace_readme_block("no block", "new\n")
+
+
+def test_committed_results_regenerate_byte_for_byte(tmp_path: Path) -> None:
+    """The committed tables, claims and README block are what `racebench paper-tables` makes of the committed
+    records (no training, no flying)."""
+    written = write_report(ROOT, tmp_path, readme=None)
+    compared = [path for path in written if path.suffix in (".md", ".csv", ".tex")]
+    assert {path.name for path in compared} >= {"table_ii.md", "table_iii.tex", "table_iv.csv", "claims.md"}
+    for path in compared:
+        committed = ROOT / "results" / path.relative_to(tmp_path)
+        assert committed.read_text() == path.read_text(), f"results/{path.name} is stale: run racebench paper-tables"
+    readme = (ROOT / "README.md").read_text()
+    block = (tmp_path / "at_a_glance.md").read_text()
+    assert replace_readme_block(readme, block) == readme, "README's results block is stale: run racebench paper-tables"
+
+
+def test_paper_tables_command_writes_into_out(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    assert main(["paper-tables", "--root", str(ROOT), "--out", str(tmp_path), "--no-readme"]) == 0
+    assert (tmp_path / "table_ii.md").is_file() and "wrote" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="racebench paper-tables: .* is not a folder"):
+        main(["paper-tables", "--root", str(tmp_path / "nowhere"), "--out", str(tmp_path)])
