@@ -86,16 +86,12 @@ BUILTIN_VERSIONS: dict[str, int] = {"random": 1, "hover": 1, "planner": 1, "plan
 TRUSTED_CHECKPOINTS: dict[str, str] = {
     "a9648364a3a9c09e80189685eaecd34bfa47c1812bb7de8ab5a5cf00bd2bcd92": "vision-ppo-S/vision-ppo-S.zip",
     "3197e89e15de4f01be8cfb9e70d3595d9c50f3a15a5f99ea13b505429dfcc6b9": "state-ppo-S/state-ppo-S.zip",
-    "3275c4e846ca85e5265e0a26ee96a550e17145365d5c7b7430f5f37f3c748c20": "vision-dagger-S/vision-dagger-S.zip",
-    "284472ccda7ca9bb8dacb0445ab51e0d29cd3d7645e2cb72ff469957506fb600": "vision-distill-v1-S/vision-distill-S.zip",
     "ab21b31bfddbbf6add303d7a694b271802ec9b0174ca333f24a6a5938f298373": "vision-distill-S/vision-distill-S.zip",
     "2db06548dde9f2989e1d25394faac2d02a37deaff6e2893bbf4b4eb7da64650a": "vision-distill-ppo-S/vision-distill-ppo-S.zip",
     "5639e53c43a9f9f45ea1dac34c8058f3c8250b76e7d922016a243e329a07a4ed": (
         "vision-distill-Circle/vision-distill-Circle.zip"
     ),
     "b22cd966241f91efae27854bd6313f2ff57b17b89aa7ce9f6b49d6ac4a70b411": "vision-distill-J/vision-distill-J.zip",
-    "75721e4a6e948352f99586a674d9ab24afb3fb07bc62ddaf6949b783c68d8d29": "vision-dagger-J/vision-dagger-J.zip",
-    "0cd4efa09868e16ae77ebeb21d6b954b0cb6f81a1db5ad208b059c88020ad403": "vision-dagger-Circle/vision-dagger-Circle.zip",
     "628cf97178bfa842d3c1a74bdc78e56071ede7c8a1cbb70b76b526af3a390853": (
         "vision-distill-ppo-Circle/vision-distill-ppo-Circle.zip"
     ),
