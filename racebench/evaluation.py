@@ -72,7 +72,7 @@ from racebench.records import (
     seal,
     shard_path,
 )
-from racebench.registration import DENSITIES, ENV_VERSION, GATE_SHIFTS
+from racebench.registration import DENSITIES, ENV_VERSION, GATE_SHIFTS, TRACK_IDS
 from racebench.rollout import BatchAgent, env_error_result, run_episode, run_lockstep
 from racebench.statistics import paired_outcomes, wilson_interval
 
@@ -598,6 +598,22 @@ def load_result_dir(path: str | Path) -> tuple[Path, pd.DataFrame]:
     return path, episodes
 
 
+def _directory_label(path: Path) -> str:
+    """A result directory's name for a table row: the run it belongs to, not a generic evaluation folder's name.
+
+    ``eval``, ``eval-*`` and ``exported`` name what was evaluated, not which policy: the parent's name stands
+    instead (``distill-ppo-bc/eval-exported`` -> ``distill-ppo-bc``). A per-track or per-seed subfolder (``S``,
+    ``Circle``, ``seed1``) keeps its run's name in front (``distill-ppo-gate-centre/Circle``).
+    """
+    parts = list(path.resolve().parts)
+    if parts and (parts[-1] in ("eval", "exported") or parts[-1].startswith("eval-")):
+        parts.pop()
+    name = parts[-1] if parts else str(path)
+    if len(parts) > 1 and (name in TRACK_IDS or re.fullmatch(r"seed\d+", name)):
+        name = f"{parts[-2]}/{name}"
+    return name
+
+
 def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
     """Summaries of result directories, recomputed from their validated records.
 
@@ -612,7 +628,7 @@ def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
     # of one config and seed, each evaluated on its own track), the label stays one row, as the paper's Table II
     # has one row per method with a policy per track. When their tracks overlap (e.g. per-track students also
     # flown on the other tracks), one row would mix two policies' results on a track: each such policy gets the
-    # name of the first directory holding it (its parent's for ".../eval"), in every directory it appears in.
+    # name of the first directory holding it (see _directory_label), in every directory it appears in.
     tracks: dict[str, dict[str, set[str]]] = {}  # label -> policy -> the tracks it was flown on
     for _, episodes in loaded:
         for (agent, policy), group in episodes.groupby(["agent", episodes["policy_sha256"].astype(str)]):
@@ -624,7 +640,7 @@ def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
             logger.debug("%s: one row of %d policies, one per track (%s)", agent, len(tracks[agent]), per_track)
     renamed: dict[tuple[str, str], str] = {}  # (label, policy) -> label (its first directory's name)
     for path, episodes in loaded:
-        where = path.parent.name if path.name == "eval" else path.name
+        where = _directory_label(path)
         for agent, policy in zip(episodes["agent"], episodes["policy_sha256"].astype(str), strict=True):
             if agent in shared:
                 renamed.setdefault((agent, policy), f"{agent} ({where})")

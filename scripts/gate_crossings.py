@@ -1,6 +1,6 @@
 """Where a policy crosses each gate, beside where the fast expert's planned line crosses it, on the same scenes.
 
-    python scripts/gate_crossings.py baselines/checkpoints/vision-distill-v1-S/eval --env RaceObs-S-v0
+    python scripts/gate_crossings.py baselines/checkpoints/vision-distill-S/eval --env RaceObs-S-v0
 
 Reads the trajectories an evaluation saved (``racebench evaluate --save-trajectories``), plans ``planner-fast``
 for each episode's scene (same env id and seed) and prints, per gate: how many episodes crossed it, how many

@@ -659,6 +659,21 @@ def test_one_label_on_several_policies_gets_each_directorys_name(tmp_path: Path,
     assert "name several policies" in caplog.text
 
 
+def test_a_row_is_labelled_with_its_run_not_a_generic_evaluation_folder(tmp_path: Path) -> None:
+    """``eval``, ``eval-*`` and ``exported`` folders take their run's name; track and seed subfolders keep it too."""
+    env = "RaceObs-S-Level1-v0"
+    outs = {
+        "hover": tmp_path / "distill-ppo-bc" / "eval-exported",
+        "random": tmp_path / "distill-ppo-gate-centre" / "Circle" / "exported",
+        "follow": tmp_path / "per-track" / "J" / "seed1" / "eval",
+    }
+    for agent, out in outs.items():
+        Evaluator(agent, [env], episodes=1, out_dir=out, agent_name="same").run(progress=False)
+    summary = read_summaries(list(outs.values()))
+    expected = ["same (J/seed1)", "same (distill-ppo-bc)", "same (distill-ppo-gate-centre/Circle)"]
+    assert sorted(summary["agent"]) == expected
+
+
 def test_one_label_with_one_policy_per_track_is_one_table_row(tmp_path: Path, caplog) -> None:
     """A sweep's per-track runs of one config and seed (one label, each policy flown on its own track only) are one
     row of Table II, as the paper's method rows are; a third policy on a track already covered splits them again."""
