@@ -227,6 +227,26 @@ def test_table_iv_is_one_table_per_track_and_table_iii_says_why_it_is_empty(site
     assert "No ablation entries yet" in text and "table-iii" not in page.tables
 
 
+def test_table_iii_rows_are_vision_ppo_and_its_ablations_in_the_papers_order() -> None:
+    from types import SimpleNamespace
+
+    from racebench.leaderboard.entries import Cell
+    from racebench.leaderboard.site import Row, table_iii_html
+
+    def row(name: str, k: int, tier: str = "self-reported") -> Row:
+        cell = Cell("RaceObs-S-v0", "public", 10, k, (5.0,) * k)
+        return Row(SimpleNamespace(name=name), tier, {"RaceObs-S-v0": cell})
+
+    others = [row("vision-distill", 10), row("planner", 10, "reference")]
+    assert table_iii_html([row("vision-ppo", 9), *others]) is None  # the method alone is no ablation table
+    rows = [row("vision-one-step", 0), *others, row("vision-ppo", 10), row("vision-no-gru", 2)]
+    html = table_iii_html(rows)
+    assert re.findall(r"<tr><th>([^<]+)</th>", html) == ["vision-ppo", "vision-no-gru", "vision-one-step"]
+    table = parse_html(html)  # the td cells: SR on S, 3D Circle, J
+    assert table[1][0] == ("100 [72–100]", True) and table[3][0] == ("0 [0–28]", False)  # 10/10 apart from 0/10
+    assert table[2][0] == ("20 [6–51]", False) and table[1][1] == ("–", False)  # no Circle policy: no cell
+
+
 def test_entry_pages_show_trajectory_plots_and_on_demand_videos(tmp_path: Path, monkeypatch) -> None:
     """Trajectories saved with the records become a plot per main id; videos only with videos=True."""
     import racebench.video

@@ -368,6 +368,29 @@ def table_ii_html(rows: list[Row]) -> str:
     return f'<table id="table-ii">\n<tr><th></th>{head}</tr>\n' + "\n".join(body) + "\n</table>"
 
 
+#: The paper's Table III: its method and the three ablations of it (its Sec. V-C), plus the [com] variant it also
+#: trains; a leaderboard entry is one of them when its name is the config's name.
+ABLATION_METHODS: tuple[str, ...] = ("vision-ppo", "vision-no-gru", "vision-no-avoid", "vision-one-step", "vision-com")
+
+
+def table_iii_html(rows: list[Row]) -> str | None:
+    """Table III: own-track success rate per track of ``vision-ppo`` and each ablation entry, in the paper's order;
+    None until at least one ablation (an entry named after an ablation config) is on the board."""
+    by_name = {row.name: row for row in rows}
+    if not any(name in by_name for name in ABLATION_METHODS[1:]):
+        return None
+    present = [by_name[name] for name in ABLATION_METHODS if name in by_name]
+    bold = {i: separated_best({r.name: r.cells.get(i) for r in present}) for i in MAIN_IDS}
+    head = "".join(f"<th>SR [%] {TRACK_LABELS[i]}</th>" for i in MAIN_IDS)
+    body = [
+        f"<tr><th>{_esc(_label(row))}</th>"
+        + "".join(_paper_cell(row.cells.get(i), row.name in bold[i]) for i in MAIN_IDS)
+        + "</tr>"
+        for row in present
+    ]
+    return f'<table id="table-iii">\n<tr><th></th>{head}</tr>\n' + "\n".join(body) + "\n</table>"
+
+
 VARIANTS: tuple[tuple[str, str], ...] = (
     *((f"Density{d}", f"density {d}") for d in DENSITIES),
     *((f"GateShift{g}", f"gates ±{g} m") for g in GATE_SHIFTS),
@@ -408,8 +431,10 @@ def _paper_tables_section(rows: list[Row]) -> str:
         '<p class="muted">The cells each method is ranked on: signed private-seed numbers for a verified method,'
         " public-seed records otherwise.</p>",
         table_ii_html(rows),
-        '<h3>Table III: ablations</h3>\n<p class="muted" id="table-iii">No ablation entries yet (the paper\'s'
-        " vision-no-gru, vision-one-step, vision-com and vision-no-avoid configs): the table appears with them.</p>",
+        "<h3>Table III: ablations</h3>",
+        table_iii_html(rows)
+        or '<p class="muted">No ablation entries yet (the paper\'s vision-no-gru, vision-one-step, vision-com and'
+        " vision-no-avoid configs): the table appears with them.</p>",
         "<h3>Table IV: success rate vs obstacle density and gate shift, per track</h3>",
         '<p class="muted">Public-seed records of each method\'s own policy for the track (the signed results cover'
         " the main ids only).</p>",
