@@ -7,10 +7,10 @@ under bf16 autocast.
 Fills an aggregate with ``--samples`` random steps (segments of 50-250 steps, uniform depth and state: the cost of a
 fit does not depend on the values) and times one pass of the config's student over it per batch size. A throughput
 probe only: the loss on random labels means nothing. What a recipe learns per second on real data is
-``scripts/fit_recipes.py``'s to say: there bf16 diverges, and batch 1,024 is 1.25x cheaper, not the 1.5x measured
-here (``baselines/experiments/fit_recipes.txt``). ``--frozen-features`` times the fit of ``freeze_features_after``
-(the feature layers fixed: one pass without gradient for the aggregate's features, then the GRU and heads); samples/s
-counts ``--epochs`` passes.
+``scripts/fit_recipes.py``'s to say (removed; in commit 21690504): there bf16 diverges, and batch 1,024 is 1.25x
+cheaper, not the 1.5x measured here (``baselines/experiments/fit_recipes.txt``). ``--frozen-features`` times the
+fit of ``freeze_features_after`` (the feature layers fixed: one pass without gradient for the aggregate's features,
+then the GRU and heads); samples/s counts ``--epochs`` passes.
 """
 
 from __future__ import annotations
