@@ -14,8 +14,9 @@ from typing import Any
 import gymnasium as gym
 
 import racebench
-from racebench.agents import BUILTIN_AGENTS
-from racebench.records import has_trajectories, sha256_file
+from racebench.agents.base import BUILTIN_AGENTS
+from racebench.evaluation.records import has_trajectories
+from racebench.utils.files import sha256_file
 
 SCENE_FORMATS: tuple[str, ...] = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")
 # From the registry of built-ins, so a new built-in agent is listed without anyone remembering to.
@@ -45,14 +46,16 @@ def fly(
     vecnormalize: str | Path | bool | None = None,
 ) -> dict:
     """Fly one episode of ``env_id`` with any agent spec ``evaluate`` accepts; return its outcome as a dict.
-    ``vecnormalize``: an SB3 checkpoint's statistics (:func:`racebench.agents.resolve_vecnormalize`).
+    ``vecnormalize``: an SB3 checkpoint's statistics (:func:`racebench.agents.trust.resolve_vecnormalize`).
 
-    Raises :class:`~racebench.agents.AgentLoadError` on a bad spec, an untrusted one without ``trust_code``, or an
+    Raises :class:`~racebench.agents.base.AgentLoadError` on a bad spec, an untrusted one without ``trust_code``, or an
     ``obs_mode`` other than the one the policy reads (built-in agents, which never read their observation, fly
     either).
     """
-    from racebench.agents import AgentLoadError, load_agent
-    from racebench.evaluation import SingleTorchThread, run_episode
+    from racebench.agents.base import AgentLoadError
+    from racebench.agents.loading import load_agent
+    from racebench.evaluation.rollout import run_episode
+    from racebench.evaluation.worker import SingleTorchThread
 
     pilot = load_agent(agent, trust_code=trust_code, agent_kwargs=agent_kwargs, vecnormalize=vecnormalize)
     if obs_mode is not None and obs_mode != pilot.obs_mode and agent not in BUILTIN_AGENTS:
@@ -349,7 +352,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "envs":
         _emit("\n".join(racebench.ENV_IDS))
     elif args.command == "fly":
-        from racebench.agents import AgentLoadError, parse_agent_kwargs
+        from racebench.agents.base import AgentLoadError
+        from racebench.agents.trust import parse_agent_kwargs
 
         try:
             kwargs = parse_agent_kwargs(args.agent_kwargs)
@@ -377,8 +381,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         env.close()
         log.info(f"wrote {path} and {json_path}")
     elif args.command == "train":
-        from racebench.training.dagger import DaggerConfig
-        from racebench.training.train import load_config, resolve_device, run_training
+        from racebench.training.dagger.config import DaggerConfig
+        from racebench.training.models import resolve_device
+        from racebench.training.run import load_config, run_training
 
         try:
             config = load_config(args.config)
@@ -398,7 +403,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise SystemExit(f"racebench train: {exc}") from exc
         print(json.dumps(result, indent=2))
     elif args.command == "export-onnx":
-        from racebench.agents import AgentLoadError, SB3Agent, export_onnx
+        from racebench.agents.base import AgentLoadError
+        from racebench.agents.export import export_onnx
+        from racebench.agents.loading import SB3Agent
 
         try:
             agent = SB3Agent(args.checkpoint, trust_code=args.trust_code, vecnormalize=_vecnormalize(args))
@@ -410,7 +417,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     elif args.command == "export-policy":
         return _export_policy(args)
     elif args.command == "distill":
-        from racebench.training.dagger import DaggerConfig, distill
+        from racebench.training.dagger.config import DaggerConfig
+        from racebench.training.dagger.distill.distill import distill
 
         config = DaggerConfig(
             track=args.track, iterations=args.iterations, steps_per_iteration=args.steps_per_iteration,
@@ -432,7 +440,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     elif args.command == "sweep":
         return _sweep(args)
     elif args.command == "table":
-        from racebench.tables import make_table
+        from racebench.reporting.tables import make_table
 
         try:
             text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci,
@@ -449,7 +457,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     elif args.command == "compare":
         return _compare(args)
     elif args.command == "plot":
-        from racebench import plots
+        from racebench.reporting import plots
 
         if not 20 <= args.dpi <= 2400:
             raise SystemExit(f"racebench plot: --dpi must be in [20, 2400], got {args.dpi}")
@@ -485,7 +493,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not written:
             raise SystemExit("racebench plot: no figure could be drawn from these results (see the reasons above)")
     elif args.command == "curves":
-        from racebench.plots import plot_success_curves, plot_training_curves
+        from racebench.reporting.plots import plot_success_curves, plot_training_curves
 
         if args.smooth < 1 or args.window_steps < 1:
             raise SystemExit("racebench curves: --smooth and --window-steps must be >= 1")
@@ -500,8 +508,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         except ValueError as exc:
             raise SystemExit(f"racebench curves: {exc}") from exc
     elif args.command == "render":
-        from racebench.agents import AgentLoadError, parse_agent_kwargs
-        from racebench.video import outcome_text, render_episode_video
+        from racebench.agents.base import AgentLoadError
+        from racebench.agents.trust import parse_agent_kwargs
+        from racebench.reporting.video import outcome_text, render_episode_video
 
         _make(args.env)  # validates the id with a clear message
         if not 1 <= args.fps <= 50:
@@ -598,8 +607,9 @@ def _vecnormalize(args: argparse.Namespace) -> str | bool | None:
 
 
 def _ray_options(args: argparse.Namespace, **options: Any) -> Any:
-    """The :class:`~racebench.ray_backend.RayOptions` of the command line (``None`` for the local backend)."""
-    from racebench.ray_backend import RayOptions
+    """The :class:`~racebench.evaluation.ray_backend.RayOptions` of the command line (``None`` for the local
+    backend)."""
+    from racebench.evaluation.ray_backend import RayOptions
 
     if args.backend != "ray":
         if args.address is not None:
@@ -610,8 +620,8 @@ def _ray_options(args: argparse.Namespace, **options: Any) -> Any:
 
 def _sweep(args: argparse.Namespace) -> int:
     """``racebench sweep``: run the grid, print one line per run; non-zero exit if any run failed."""
-    from racebench.ray_backend import require_ray
-    from racebench.sweep import load_sweep, run_sweep
+    from racebench.evaluation.ray_backend import require_ray
+    from racebench.training.sweep import load_sweep, run_sweep
 
     try:
         if args.backend == "ray":
@@ -649,7 +659,7 @@ def _emit(text: str) -> None:
 
 def _summaries(results: Sequence[str], command: str):
     """Summaries recomputed from the records of result directories; a bad path is a one-line error."""
-    from racebench.evaluation import read_summaries
+    from racebench.evaluation.results import read_summaries
 
     try:
         return read_summaries(results)
@@ -659,7 +669,7 @@ def _summaries(results: Sequence[str], command: str):
 
 def _paper_tables(args: argparse.Namespace) -> int:
     """``racebench paper-tables``: Tables II-IV, claims.md, the README block and the learning curves."""
-    from racebench.paper import validation_curve, write_report
+    from racebench.reporting.paper import validation_curve, write_report
 
     root = Path(args.root)
     try:
@@ -678,7 +688,7 @@ def _paper_tables(args: argparse.Namespace) -> int:
 
 def _compare(args: argparse.Namespace) -> int:
     """``racebench compare``: each side's outcome, then the paired test per shared env id and pooled."""
-    from racebench.evaluation import paired_comparison
+    from racebench.evaluation.results import paired_comparison
 
     try:
         sides, pairs = paired_comparison(args.a, args.b)
@@ -703,7 +713,9 @@ def _export_policy(args: argparse.Namespace) -> int:
     """``racebench export-policy``: the checkpoint's policy without optimizer state, checked to act the same."""
     import shutil
 
-    from racebench.agents import AgentLoadError, SB3Agent, export_policy
+    from racebench.agents.base import AgentLoadError
+    from racebench.agents.export import export_policy
+    from racebench.agents.loading import SB3Agent
 
     source, out = Path(args.checkpoint), Path(args.out)
     try:
@@ -731,8 +743,9 @@ def _export_policy(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from racebench.agents import AgentLoadError, parse_agent_kwargs
-    from racebench.evaluation import Evaluator
+    from racebench.agents.base import AgentLoadError
+    from racebench.agents.trust import parse_agent_kwargs
+    from racebench.evaluation.evaluator import Evaluator
 
     try:
         agent_kwargs = parse_agent_kwargs(args.agent_kwargs)

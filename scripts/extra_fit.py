@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from racebench.records import atomic_write
+from racebench.evaluation.records import atomic_write
 from racebench.training.dagger import (
     DaggerConfig,
     Dataset,

@@ -3,7 +3,7 @@
     python scripts/mixture_modes.py runs/distill-mixture-S-seed0/vision-distill-mixture-S.zip \\
         --env RaceObs-S-v0 --episodes 20
 
-Flies a student with a :class:`racebench.training.policies.MixtureActionHead` on the first ``--episodes``
+Flies a student with a :class:`racebench.agents.recurrent.MixtureActionHead` on the first ``--episodes``
 evaluation scenes (seeds from ``EVAL_SEED_BASE``; the analytic ray caster, ``renderer="raycast"``, the training
 renderer) as the evaluator does (its top-scoring candidate, clipped) and reports, over every step flown:
 
@@ -28,9 +28,9 @@ import numpy as np
 import torch
 
 from racebench.agents import SB3Agent
+from racebench.agents.recurrent import MixtureActionHead
 from racebench.evaluation import EVAL_SEED_BASE
 from racebench.training.dagger import student_features, student_unroll
-from racebench.training.policies import MixtureActionHead
 
 
 def fly(policy, env: gym.Env, seed: int) -> tuple[bool, np.ndarray, np.ndarray]:

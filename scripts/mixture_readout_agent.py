@@ -1,6 +1,6 @@
 """A mixture-output student flown at the weighted mean of its candidates instead of its top one (experiment, issue 12).
 
-The ``distill-mixture`` students (``racebench.training.policies.MixtureActionHead``, three candidates) fly their
+The ``distill-mixture`` students (``racebench.agents.recurrent.MixtureActionHead``, three candidates) fly their
 top-scoring candidate, which changes 13-18 times per lap (``baselines/experiments/distill-mixture/
 mixture_modes.txt``). This agent flies the same network with the softmax-weighted mean of the candidates, a read-out
 that varies smoothly with the scores, to separate what the switching read-out costs from what the mixture fit did to
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from racebench.agents import AgentLoadError, SB3Agent
-from racebench.training.policies import MixtureActionHead
+from racebench.agents.recurrent import MixtureActionHead
 
 
 def weighted_mean(head: MixtureActionHead, latent: torch.Tensor) -> torch.Tensor:

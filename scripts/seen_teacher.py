@@ -3,7 +3,7 @@
     python scripts/seen_teacher.py --config baselines/vision-distill.yaml --tracks S J Circle --episodes 50
 
 The privileged teacher (``teacher_obstacles: all``) plans its line at reset around every obstacle; the "seen"
-teacher (``teacher_obstacles: seen``, :class:`racebench.planner.FastPlannerAgent` with
+teacher (``teacher_obstacles: seen``, :class:`racebench.agents.planner.FastPlannerAgent` with
 ``obstacle_knowledge="seen"``) only around those its onboard camera has shown, planning again when one comes into
 view near its line. Both are built from the config's teacher keys (:func:`racebench.training.dagger.make_teacher`)
 and fly every scene of the evaluation seeds of ``RaceObs-<T>-v0`` (the same scenes ``racebench evaluate``
@@ -25,9 +25,9 @@ import numpy as np
 import pandas as pd
 
 from racebench.evaluation import EVAL_SEED_BASE
-from racebench.raycast import ObstacleSight
-from racebench.rollout import run_episode
-from racebench.statistics import paired_outcomes, wilson_interval
+from racebench.evaluation.rollout import run_episode
+from racebench.evaluation.statistics import paired_outcomes, wilson_interval
+from racebench.sim.raycast import ObstacleSight
 from racebench.training.dagger import DaggerConfig, make_teacher
 from racebench.training.train import load_config
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import pandas as pd
 from scipy.stats import spearmanr
 
-from racebench.statistics import paired_outcomes, wilson_interval
+from racebench.evaluation.statistics import paired_outcomes, wilson_interval
 
 
 def candidate_table(selection: pd.DataFrame, folder: Path) -> pd.DataFrame:

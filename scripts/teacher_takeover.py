@@ -28,9 +28,9 @@ import numpy as np
 import torch
 
 from racebench.agents import SB3Agent
+from racebench.agents.planner import FastPlannerAgent
 from racebench.evaluation import EVAL_SEED_BASE
-from racebench.planner import FastPlannerAgent
-from racebench.statistics import wilson_interval
+from racebench.evaluation.statistics import wilson_interval
 
 
 def fly(student: SB3Agent, teacher: FastPlannerAgent, env: gym.Env, seed: int, handover: int) -> dict:

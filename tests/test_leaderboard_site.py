@@ -14,8 +14,8 @@ import pytest
 from leaderboard_fixtures import GC_AGENT, SALT, add, evaluate, make_key, make_repo, write_hover_onnx, write_records
 
 from racebench import cli
+from racebench.evaluation.statistics import wilson_interval
 from racebench.leaderboard.entries import MAIN_IDS
-from racebench.statistics import wilson_interval
 
 ROOT = Path(__file__).parents[1]
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -229,7 +229,7 @@ def test_table_iv_is_one_table_per_track_and_table_iii_says_why_it_is_empty(site
 
 def test_entry_pages_show_trajectory_plots_and_on_demand_videos(tmp_path: Path, monkeypatch) -> None:
     """Trajectories saved with the records become a plot per main id; videos only with videos=True."""
-    import racebench.video
+    import racebench.reporting.video
     from racebench.leaderboard.site import build_site
 
     board = make_repo(tmp_path)
@@ -244,7 +244,7 @@ def test_entry_pages_show_trajectory_plots_and_on_demand_videos(tmp_path: Path, 
         Path(path).write_bytes(b"mp4")
         return Path(path), {}
 
-    monkeypatch.setattr(racebench.video, "render_episode_video", fake_video)
+    monkeypatch.setattr(racebench.reporting.video, "render_episode_video", fake_video)
     with_videos = build_site(board, tmp_path / "site", videos=True)
     page = (with_videos.parent / "entries" / "follow.html").read_text()
     assert page.count("<video") == 1 and (with_videos.parent / "entries" / "follow" / "S.mp4").is_file()

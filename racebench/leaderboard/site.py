@@ -35,7 +35,10 @@ from typing import Any
 import numpy as np
 
 import racebench
-from racebench.evaluation import TRACK_ORDER, split_env_id
+from racebench.agents.base import AgentLoadError
+from racebench.envs.registration import DENSITIES, ENV_VERSION, GATE_SHIFTS
+from racebench.evaluation.protocol import EVAL_SEED_BASE, TRACK_ORDER, split_env_id
+from racebench.evaluation.records import read_trajectories
 from racebench.leaderboard import signing
 from racebench.leaderboard.entries import (
     MAIN_IDS,
@@ -49,7 +52,9 @@ from racebench.leaderboard.entries import (
     summarize_cells,
 )
 from racebench.leaderboard.signing import VERIFIED_FILE, SignatureError, VerifiedResult
-from racebench.registration import DENSITIES, ENV_VERSION, GATE_SHIFTS
+from racebench.reporting import video
+from racebench.reporting.plots import plot_track_3d
+from racebench.reporting.tables import best_separated
 
 BOOTSTRAP_RESAMPLES = 2000
 BOOTSTRAP_SEED = 0
@@ -109,8 +114,6 @@ def _lap_html(value: float, laps: int) -> str:
 
 def separated_best(cells: dict[str, Cell | None]) -> set[str]:
     """Names whose Wilson interval lies strictly above every other name's interval (needs a rival)."""
-    from racebench.tables import best_separated
-
     return best_separated({name: c.interval for name, c in cells.items() if c is not None}, lower_is_better=False)
 
 
@@ -610,15 +613,12 @@ def entry_media(entry: Entry, folder: Path, videos: bool = False, trust_code: bo
     """Trajectory plots (and, with ``videos``, one episode video) per main id of ``entry``, written into ``folder``;
     return the HTML section that shows them.
 
-    A plot is the paper's Fig. 4 (:func:`racebench.plots.plot_track_3d`) from the trajectories saved with the
+    A plot is the paper's Fig. 4 (:func:`racebench.reporting.plots.plot_track_3d`) from the trajectories saved with the
     records of the entry's policy for that track (``evaluate --save-trajectories``): one scene, its flights in it.
-    A video flies the track's policy on the first public evaluation seed (:func:`racebench.video.render_episode_video`):
+    A video flies the track's policy on the first public evaluation seed
+    (:func:`racebench.reporting.video.render_episode_video`):
     chase view beside the colour-mapped depth image, outcome captioned. Built on demand and not committed.
     """
-    from racebench.agents import AgentLoadError
-    from racebench.evaluation import EVAL_SEED_BASE
-    from racebench.plots import plot_track_3d
-
     figures, missing = [], []
     for env_id in MAIN_IDS:
         policy = entry.policy_for(split_env_id(env_id)[0])
@@ -639,8 +639,6 @@ def entry_media(entry: Entry, folder: Path, videos: bool = False, trust_code: bo
                      " written without <code>--save-trajectories</code>.</p>")  # fmt: skip
     clips = []
     if videos:
-        from racebench.video import render_episode_video
-
         for env_id in MAIN_IDS:
             policy = entry.policy_for(split_env_id(env_id)[0])
             if policy is not None and any(r["env_id"] == env_id for r in policy.records):
@@ -648,8 +646,8 @@ def entry_media(entry: Entry, folder: Path, videos: bool = False, trust_code: bo
                 mp4 = folder / f"{TRACK_LABELS[env_id].replace(' ', '-')}.mp4"
                 folder.mkdir(parents=True, exist_ok=True)
                 try:
-                    render_episode_video(spec, env_id, EVAL_SEED_BASE, mp4, trust_code=trust_code,
-                                         label=entry.name)  # fmt: skip
+                    video.render_episode_video(spec, env_id, EVAL_SEED_BASE, mp4, trust_code=trust_code,
+                                               label=entry.name)  # fmt: skip
                 except AgentLoadError as exc:  # e.g. a .zip without --trust-code: the page says so, the site builds
                     clips.append(f'<p class="note">No video: {_esc(exc)}</p>')
                     break
@@ -664,8 +662,6 @@ def entry_media(entry: Entry, folder: Path, videos: bool = False, trust_code: bo
 
 def _has_trajectories(records_dir: Path, env_id: str) -> bool:
     """Whether the result folder ``records_dir`` holds a saved flight of ``env_id``."""
-    from racebench.records import read_trajectories
-
     return any(row["env_id"] == env_id for row, _, _ in read_trajectories(records_dir))
 
 
