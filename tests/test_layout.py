@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import ast
+import base64
+import importlib
+import json
 import re
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -135,7 +139,114 @@ def test_the_layout_page_lists_every_module() -> None:
     assert listed == actual, (sorted(actual - listed), sorted(listed - actual))
 
 
-@pytest.mark.parametrize("limit", [650])
-def test_no_module_is_over_the_size_limit(limit: int) -> None:
+#: Most lines of a module.
+MAX_LINES = 600
+#: The modules allowed over :data:`MAX_LINES`, each with its one job (and at most this many lines).
+LONG_MODULES: dict[str, tuple[int, str]] = {
+    "racebench/envs/env.py": (660, "RaceEnv, one class; its docstring is the env's reference (spaces, parameters)"),
+    "racebench/benchmark.py": (640, "racebench bench: one throughput table, a section per measured stage"),
+    "racebench/leaderboard/entries.py": (640, "an entry: its metadata, records and tier"),
+    "racebench/reporting/paper.py": (640, "the paper's tables and claims from a campaign"),
+}
+
+
+def test_no_module_is_over_the_size_limit() -> None:
     sizes = {str(p.relative_to(ROOT)): len(p.read_text().splitlines()) for p in PACKAGE.rglob("*.py")}
-    assert {p: n for p, n in sizes.items() if n > limit} == {}
+    over = {p: n for p, n in sizes.items() if n > LONG_MODULES.get(p, (MAX_LINES,))[0]}
+    assert over == {}
+
+
+def test_setup_cfg_installs_every_subpackage() -> None:
+    from setuptools.config.setupcfg import read_configuration
+
+    listed = set(read_configuration(ROOT / "setup.cfg")["options"]["packages"])
+    packages = {".".join(p.parent.relative_to(ROOT).parts) for p in PACKAGE.rglob("__init__.py")}
+    assert packages <= listed
+
+
+#: Names the docs, the README and users' code import from racebench's former module paths.
+FORMER_NAMES: tuple[tuple[str, str], ...] = (
+    ("racebench", "ENV_IDS"),
+    ("racebench.env", "RaceEnv"),
+    ("racebench.env", "depth_to_uint8"),
+    ("racebench.agents", "export_onnx"),
+    ("racebench.agents", "export_policy"),
+    ("racebench.agents", "load_agent"),
+    ("racebench.agents", "resolve_vecnormalize"),
+    ("racebench.agents", "SB3Agent"),
+    ("racebench.evaluation", "Evaluator"),
+    ("racebench.evaluation", "EVAL_SEED_BASE"),
+    ("racebench.evaluation", "read_summaries"),
+    ("racebench.evaluation", "RecordWriter"),
+    ("racebench.records", "read_folder"),
+    ("racebench.statistics", "counts_consistent"),
+    ("racebench.obstacles", "find_corridor"),
+    ("racebench.planner", "FastPlannerAgent"),
+    ("racebench.control", "command_to_ctbr"),
+    ("racebench.track", "load_track"),
+    ("racebench.vector", "RaceVectorEnv"),
+    ("racebench.sb3", "make_sb3_vec_env"),
+    ("racebench.reward", "wrap_angle"),
+    ("racebench.leaderboard.seeds", "seeds_for"),
+    ("racebench.leaderboard.signing", "public_key_sha256"),
+    ("racebench.training.train", "TrainConfig"),
+    ("racebench.training.train", "load_config"),
+    ("racebench.training.dagger", "DaggerConfig"),
+    ("racebench.training.dagger", "distill"),
+    ("racebench.training.policies", "RecurrentGRUPolicy"),
+    ("racebench.training.policies", "RaceFeatures"),
+    ("racebench.benchmark", "run_benchmark"),
+)
+
+
+@pytest.mark.parametrize(("module", "name"), FORMER_NAMES)
+def test_former_import_paths_still_work(module: str, name: str) -> None:
+    assert getattr(importlib.import_module(module), name) is not None
+
+
+def test_a_former_module_path_is_the_module_that_replaced_it() -> None:
+    import racebench.env
+
+    import racebench.envs.env
+
+    assert racebench.env is racebench.envs.env and racebench.env.__spec__.name == "racebench.envs.env"
+
+
+def pickled_module_paths(checkpoint: Path) -> set[str]:
+    """The racebench modules named by the classes pickled in an SB3 checkpoint's ``data`` (policy, features)."""
+    data = json.loads(zipfile.ZipFile(checkpoint).read("data"))
+    found: set[str] = set()
+
+    def walk(value: object) -> None:
+        if isinstance(value, dict):
+            for key, item in value.items():
+                if key == ":serialized:":
+                    found.update(m.decode() for m in re.findall(rb"racebench[\w.]*", base64.b64decode(item)))
+                else:
+                    walk(item)
+        elif isinstance(value, list):
+            for item in value:
+                walk(item)
+
+    walk(data)
+    return found
+
+
+COMMITTED_ZIPS = sorted(
+    [*ROOT.glob("baselines/checkpoints/*/*.zip"), *ROOT.glob("baselines/experiments/campaign-4m/*/checkpoints/*.zip")]
+)
+
+
+def test_every_committed_checkpoint_names_importable_modules() -> None:
+    assert COMMITTED_ZIPS
+    for checkpoint in COMMITTED_ZIPS:
+        for module in pickled_module_paths(checkpoint):
+            importlib.import_module(module)  # racebench.training.policies (the classes), racebench.training.train
+
+
+@pytest.mark.parametrize("checkpoint", COMMITTED_ZIPS, ids=lambda p: str(p.relative_to(ROOT / "baselines")))
+def test_every_committed_checkpoint_loads(checkpoint: Path) -> None:
+    from racebench.agents.loading import SB3Agent
+
+    agent = SB3Agent(str(checkpoint), trust_code=True)
+    assert agent.obs_mode in ("vision", "state")

@@ -175,7 +175,7 @@ def test_probability_of_improvement_within_a_tier(site: Path) -> None:
 def test_probability_of_improvement_is_mann_whitney_u_over_n_m() -> None:
     from scipy.stats import mannwhitneyu
 
-    from racebench.leaderboard.site import probability_of_improvement
+    from racebench.evaluation.statistics import probability_of_improvement
 
     rng = np.random.default_rng(5)
     ids = ["A", "B"]
@@ -197,7 +197,7 @@ def test_paper_tables_bold_only_where_intervals_separate(site: Path) -> None:
     from types import SimpleNamespace
 
     from racebench.leaderboard.entries import Cell
-    from racebench.leaderboard.site import Row, table_ii_html
+    from racebench.leaderboard.ranking import Row, table_ii_html
 
     # On the fixture site no SR interval is separated from every rival's (strong's [60–98] meets verified's).
     table = parse(site / "index.html").tables["table-ii"]

@@ -20,6 +20,8 @@ from racebench.agents import WRITTEN_FILE, AgentLoadError, SB3Agent, UntrustedCo
 from racebench.agents.recurrent import CNN_KINDS, LSTMShapedGRU, RecurrentGRUPolicy, depth_cnn
 from racebench.envs.registration import CURRICULUM
 from racebench.evaluation import EVAL_SEED_BASE
+from racebench.training.callbacks import _save_atomically
+from racebench.training.ppo import _load_model, _restore_reward_stats, _trusted_reward_stats
 from racebench.training.sb3 import RaceSB3VecEnv
 from racebench.training.train import BASELINES as BASELINE_NAMES
 from racebench.training.train import (
@@ -27,10 +29,6 @@ from racebench.training.train import (
     MultiSceneCallback,
     ThreadsCallback,
     TrainConfig,
-    _load_model,
-    _restore_reward_stats,
-    _save_atomically,
-    _trusted_reward_stats,
     archive_finished_part,
     load_config,
     make_envs,

@@ -58,6 +58,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "Evaluator",
     ),
     "rollout": ("BatchAgent", "env_error_result", "run_episode", "run_lockstep"),
+    "statistics": ("paired_outcomes", "wilson_interval"),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 __all__ = sorted(_WHERE)

@@ -1,4 +1,5 @@
-"""Statistics of success rates: Wilson intervals and a test that two success counts agree.
+"""Statistics of success rates: Wilson intervals, a test that two success counts agree, paired tests and the
+bootstrap intervals of the leaderboard (a mean over tracks, the probability of improvement).
 
 A learned policy's closed loop amplifies last-bit float differences between CPUs, so the same checkpoint
 on the same seeds can give a different episode on another machine. What the benchmark promises about a
@@ -8,10 +9,12 @@ bit-identical replay.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
-from scipy.stats import binomtest, fisher_exact
+import numpy as np
+from scipy.stats import binomtest, bootstrap, fisher_exact
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -19,6 +22,9 @@ if TYPE_CHECKING:
 #: False-fail rate of :func:`counts_consistent` (two-sided): a reproduction of a committed count is
 #: rejected by chance at most this often.
 CONSISTENCY_ALPHA = 0.001
+#: Resamples and seed of every bootstrap interval here (the leaderboard's aggregate and improvement columns).
+BOOTSTRAP_RESAMPLES = 2000
+BOOTSTRAP_SEED = 0
 
 
 def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
@@ -125,3 +131,48 @@ def trend_test(strata: list[tuple[list[float], list[int], list[int]]]) -> tuple[
         return 0.0, 1.0, 1.0
     z = statistic / variance**0.5
     return z, float(norm.cdf(z)), float(norm.sf(z))
+
+
+def mean_of_means_interval(samples: list[np.ndarray]) -> tuple[float, float, float]:
+    """The mean of the samples' means (e.g. of per-track success rates) and its 95 % percentile interval from a
+    bootstrap stratified over the samples (scipy resamples each one separately): ``(point, low, high)``."""
+    point = float(np.mean([s.mean() for s in samples]))
+    if all(np.all(s == s[0]) for s in samples):  # no spread at all: every resample gives the point itself
+        return point, point, point
+    result = bootstrap(
+        samples,
+        lambda *s, axis=-1: np.mean([x.mean(axis=axis) for x in s], axis=0),
+        n_resamples=BOOTSTRAP_RESAMPLES,
+        confidence_level=0.95,
+        method="percentile",
+        rng=np.random.default_rng(BOOTSTRAP_SEED),
+    )
+    return point, float(result.confidence_interval.low), float(result.confidence_interval.high)
+
+
+def probability_of_improvement(
+    x: Sequence[dict[str, Any]], y: Sequence[dict[str, Any]], ids: Sequence[str]
+) -> dict[str, float]:
+    """P(an episode of X succeeds where one of Y does not) + half the ties, averaged over ``ids`` (rliable's
+    probability of improvement, a Mann–Whitney U / (n·m) per track, here over evaluation episodes), with a 95 %
+    percentile interval from scipy's bootstrap resampling each entry's episodes within each track (tests check
+    the closed form against ``scipy.stats.mannwhitneyu``)."""
+    samples = []
+    for env_id in ids:
+        samples.append(np.array([float(r["success"]) for r in x if r["env_id"] == env_id]))
+        samples.append(np.array([float(r["success"]) for r in y if r["env_id"] == env_id]))
+
+    def statistic(*arrays: np.ndarray, axis: int = -1) -> np.ndarray:
+        per_track = []
+        for a, b in zip(arrays[::2], arrays[1::2], strict=True):
+            # P(X > Y) + P(X = Y) / 2 for 0/1 outcomes, vectorised over bootstrap resamples.
+            pa, pb = a.mean(axis=axis), b.mean(axis=axis)
+            per_track.append(pa * (1 - pb) + 0.5 * (pa * pb + (1 - pa) * (1 - pb)))
+        return np.mean(per_track, axis=0)
+
+    point = float(statistic(*samples))
+    if all(np.all(a == a[0]) for a in samples):
+        return {"p": point, "low": point, "high": point}
+    result = bootstrap(samples, statistic, n_resamples=BOOTSTRAP_RESAMPLES, confidence_level=0.95,
+                       method="percentile", rng=np.random.default_rng(BOOTSTRAP_SEED))  # fmt: skip
+    return {"p": point, "low": float(result.confidence_interval.low), "high": float(result.confidence_interval.high)}

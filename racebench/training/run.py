@@ -10,7 +10,7 @@ from typing import Any
 
 from racebench.training.config import TrainConfig, baseline_path
 from racebench.training.dagger.config import DaggerConfig
-from racebench.training.dagger.distill.distill import distill
+from racebench.training.dagger.distill import distill
 from racebench.training.dagger.resume import completed_iterations
 from racebench.training.ppo import train
 from racebench.utils.yamlfile import read_yaml

@@ -1,4 +1,4 @@
-"""DAgger: a depth student imitates a privileged planner (method: dagger configs; see :mod:`.distill`).
+"""DAgger: a depth student imitates a privileged planner (``method: dagger`` configs; see :mod:`.distill`).
 
 * :mod:`~racebench.training.dagger.config`: :class:`DaggerConfig`; :mod:`~racebench.training.dagger.dataset`: the
   aggregate;
@@ -6,7 +6,7 @@
 fitting the
   student; :mod:`~racebench.training.dagger.select`: choosing the final student;
 * :mod:`~racebench.training.dagger.resume`: a run's resumable state;
-:mod:`~racebench.training.dagger.distill.distill`: the
+:mod:`~racebench.training.dagger.distill`: the
   main loop (:func:`distill`).
 
 The names of the former module ``racebench.training.dagger`` are re-exported here (the student's network
@@ -73,6 +73,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "make_teacher",
         "distill",
     ),
+    "...evaluation.protocol": ("EVAL_SEED_BASE", "VALIDATION_SEED_BASE"),
     "..student": (
         "make_student",
         "is_recurrent",

@@ -53,10 +53,10 @@ from racebench.agents.loading import load_agent
 from racebench.agents.planner import FastPlannerAgent, PlannerAgent
 from racebench.agents.trust import own_policy_trust, record_written
 from racebench.evaluation.evaluator import Evaluator
-from racebench.training.dagger.collect.collect import collect, make_path_head
+from racebench.training.dagger.collect import collect, make_path_head
 from racebench.training.dagger.config import DaggerConfig
 from racebench.training.dagger.dataset import Dataset
-from racebench.training.dagger.fit.fit import fit, iteration_learning_rate
+from racebench.training.dagger.fit import fit, iteration_learning_rate
 from racebench.training.dagger.resume import (
     KEPT_DIR,
     RESUME_DIR,
