@@ -26,16 +26,19 @@ Everything is printed and written to a CSV (one row per measurement: section, na
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import os
 import platform
 import resource
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 
 from racebench.agents.export import export_onnx
@@ -279,8 +282,6 @@ def _bench_vector(rec: _Recorder, s: BenchSettings, obs_mode: str, processes: in
 def _bench_training(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
     """End-to-end training samples/s (env + PPO update) of the ``state-ppo`` and ``vision-ppo`` baselines as
     configured (``vision-ppo`` with both depth renderers), and the share of time spent in the update."""
-    import dataclasses
-
     import torch
     from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 
@@ -363,8 +364,6 @@ class _ActionLog:
 
     def make_env(self, env_id: str) -> Any:
         """A ``gym.make`` env whose ``reset_state``/``advance`` log the seed and the actions."""
-        import gymnasium as gym
-
         env = gym.make(env_id, obs_mode=self.obs_mode, renderer=self.renderer)
         raw = env.unwrapped
         reset_state, advance = raw.reset_state, raw.advance
@@ -391,12 +390,10 @@ def _bench_evaluation(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
     efficiency. Also the policy call itself at batch 1 and 64 on one and two torch threads (the evaluator
     runs one thread per process: :func:`racebench.evaluation.worker.torch_threads`).
     """
-    import gymnasium as gym
     import torch
 
     ratios: dict[str, float] = {}
     env_id, episodes, width = f"RaceObs-{s.track}-v0", s.eval_episodes, s.eval_batch
-    import tempfile
 
     exported = Path(tempfile.mkdtemp(prefix="racebench-bench-"))
     runs = []

@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import os
+import shutil
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -456,8 +457,6 @@ def _compare(args: argparse.Namespace) -> int:
 
 def _export_policy(args: argparse.Namespace) -> int:
     """``racebench export-policy``: the checkpoint's policy without optimizer state, checked to act the same."""
-    import shutil
-
     from racebench.agents.base import AgentLoadError
     from racebench.agents.export import export_policy
     from racebench.agents.loading import SB3Agent

@@ -8,6 +8,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
+from gymnasium import spaces
 
 if TYPE_CHECKING:
     pass
@@ -60,8 +61,6 @@ class Agent(Protocol):
 
 def obs_mode_of(space: Any) -> str:
     """``"vision"`` or ``"state"``: which of racebench's observations a policy's observation space is."""
-    from gymnasium import spaces
-
     if isinstance(space, spaces.Dict) and "depth" in space.spaces:
         return "vision"
     if isinstance(space, spaces.Box) and space.shape == (17,):

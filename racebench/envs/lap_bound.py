@@ -29,7 +29,9 @@ a physics step more, so the bound of an env is the continuous one less ``1 / (2 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import inspect
 import math
 
 import numpy as np
@@ -108,16 +110,12 @@ def lap_time_lower_bound(
 def env_lap_time_bound(env_id: str) -> float:
     """:func:`lap_time_lower_bound` of a registered env id, from its ``RaceEnv`` kwargs (cached per process, which
     holds one env version)."""
-    import inspect
-
     if env_id not in ENV_KWARGS:
         raise ValueError(f"env_id {env_id!r} is not a racebench id")
     defaults = {k: p.default for k, p in inspect.signature(RaceEnv.__init__).parameters.items()}
     kwargs = {**defaults, **ENV_KWARGS[env_id]}
     track = load_track(kwargs["track"])
     if kwargs["start_spread"] is not None:
-        import dataclasses
-
         spread = np.asarray(kwargs["start_spread"], dtype=float)
         track = dataclasses.replace(track, start=dataclasses.replace(track.start, spread=spread))
     quad = kwargs["quadrotor"]

@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import inspect
+import io
 import json
 import logging
 import math
@@ -42,10 +44,13 @@ import os
 import platform
 import re
 import subprocess
+import zipfile
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from racebench.agents.base import BUILTIN_PRIVILEGED
 from racebench.envs.env import RaceEnv
@@ -201,7 +206,6 @@ def env_facts(env_id: str) -> dict[str, Any]:
     and the least possible lap time (:mod:`racebench.envs.lap_bound`)."""
     if env_id not in ENV_KWARGS:
         raise InvalidRecordError(f"env_id {env_id!r} is not a racebench id")
-    import inspect
 
     defaults = {k: p.default for k, p in inspect.signature(RaceEnv.__init__).parameters.items()}
     kwargs = {**defaults, **ENV_KWARGS[env_id]}
@@ -517,8 +521,6 @@ def has_trajectories(folder: str | Path) -> bool:
 def read_trajectories(folder: str | Path) -> list[tuple[dict[str, Any], Any, dict[str, Any]]]:
     """Every saved trajectory of ``folder`` as ``(record, positions, scene)``, in record-name order (one per
     episode slot: a per-episode file not yet merged, else ``trajectories.npz``)."""
-    import numpy as np
-
     folder = Path(folder)
     found: dict[str, tuple[dict[str, Any], Any, dict[str, Any]]] = {}
     # Per-episode files first: one re-flown after a kill replaces what the merged file holds of its slot.
@@ -539,11 +541,6 @@ def read_trajectories(folder: str | Path) -> list[tuple[dict[str, Any], Any, dic
 
 def write_trajectories(path: Path, flights: list[tuple[dict[str, Any], Any, dict[str, Any]]]) -> None:
     """Write ``flights`` as one compressed ``.npz`` (fixed zip timestamps: the same flights give the same bytes)."""
-    import io
-    import zipfile
-
-    import numpy as np
-
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
         for row, positions, scene in flights:

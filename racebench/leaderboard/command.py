@@ -5,14 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from racebench.agents.base import BUILTIN_AGENTS, AgentLoadError
-from racebench.evaluation.seeds import SeedSetError, salt_from_env
-from racebench.leaderboard.entries import EntryError, add_entry, load_config, load_entries
-from racebench.leaderboard.signing import SignatureError, check_verified, sign_entry
-from racebench.leaderboard.site import build_site
-from racebench.leaderboard.verify import verify_entry
-from racebench.utils.yamlfile import yaml_problem
-
 DEFAULT_LEADERBOARD = "results/leaderboard"
 
 
@@ -22,6 +14,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     lb = p_lb.add_subparsers(dest="leaderboard_command", required=True)
 
     p_add = lb.add_parser("add", help="create results/leaderboard/<name>/entry.yaml for a method's policies")
+    from racebench.agents.base import BUILTIN_AGENTS  # light: the built-ins' registry, for the help
 
     p_add.add_argument("--policy", required=True, action="append", metavar="[TRACK=]POLICY",
                        help="policy file in the repository (.onnx, .zip, file.py:Class) or a built-in agent "
@@ -87,6 +80,12 @@ def run(args: argparse.Namespace) -> int:
     """Run the parsed ``racebench leaderboard`` command; bad input is a one-line :class:`SystemExit`."""
     import yaml
 
+    from racebench.agents.base import AgentLoadError
+    from racebench.evaluation.seeds import SeedSetError
+    from racebench.leaderboard.entries import EntryError, add_entry, load_config, load_entries
+    from racebench.leaderboard.signing import SignatureError
+    from racebench.utils.yamlfile import yaml_problem
+
     command = f"racebench leaderboard {args.leaderboard_command}"
     try:
         if args.leaderboard_command == "add":
@@ -104,6 +103,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"wrote {entry.folder / 'entry.yaml'} ({len(entry.records)} records, tier: self-reported until "
                   "the maintainers sign a verification)")  # fmt: skip
         elif args.leaderboard_command == "verify":
+            from racebench.leaderboard.verify import verify_entry
+
             checks = []
             for entry in load_entries(args.leaderboard, args.entry):
                 for check in verify_entry(
@@ -118,6 +119,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"{len(checks)} cells verified (Fisher exact, α = 0.001 each; lap times within 0.2 s + 4 SE; "
                   "deterministic built-ins episode by episode)")  # fmt: skip
         elif args.leaderboard_command == "sign":
+            from racebench.evaluation.seeds import salt_from_env
+            from racebench.leaderboard.signing import check_verified, sign_entry
+
             if args.episodes < 1:
                 raise EntryError(f"--episodes must be >= 1, got {args.episodes}")
             (entry,) = load_entries(args.leaderboard, [args.entry])
@@ -130,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
                 )
             print(f"wrote {path} (signed; checks against the pinned maintainers' key)")
         elif args.leaderboard_command == "build":
+            from racebench.leaderboard.site import build_site
+
             index = build_site(args.leaderboard, args.out, videos=args.videos, trust_code=args.trust_code)
             print(f"wrote {index}")
     except (EntryError, SignatureError, SeedSetError, AgentLoadError, ValueError, OSError) as exc:
@@ -139,6 +145,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _policy_arguments(values: list[str]) -> str | dict[str, str]:
     """``--policy`` values: one bare policy (every track) or ``TRACK=POLICY`` once per track."""
+    from racebench.leaderboard.entries import EntryError
+
     if len(values) == 1 and "=" not in values[0]:
         return values[0]
     policies: dict[str, str] = {}

@@ -24,6 +24,7 @@ CPUs (docs/evaluation.md, "What is reproducible where"), so the promise is the r
 from __future__ import annotations
 
 import math
+import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -205,8 +206,6 @@ def verify_entry(
     Private-seed cells need the salt (``salt`` or ``RACEBENCH_PRIVATE_SALT``) whose hash their records carry.
     ``fresh`` discards the replays of an earlier verification first (else they are reused).
     """
-    import shutil
-
     if episodes is not None and episodes < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
     if fresh:

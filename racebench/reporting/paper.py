@@ -29,6 +29,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pandas as pd
 
@@ -466,8 +467,6 @@ def validation_curve(
 
 
 def _raycast_env(env_id: str):
-    import gymnasium as gym
-
     return gym.make(env_id, renderer="raycast")
 
 

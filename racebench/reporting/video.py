@@ -14,6 +14,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
@@ -169,8 +170,6 @@ def render_episode_video(
     Frames are taken every ``control_freq / fps`` steps, at the start and on the last step; the last frame
     is held for a second with the outcome in the caption.
     """
-    import gymnasium as gym
-
     if Path(path).suffix.lower() not in VIDEO_FORMATS:
         raise ValueError(f"{str(path)!r}: videos are written as {', '.join(VIDEO_FORMATS)}")
     agent = load_agent(agent_spec, trust_code=trust_code, agent_kwargs=agent_kwargs, vecnormalize=vecnormalize)

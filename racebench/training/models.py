@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 from typing import Any
 
@@ -51,8 +52,6 @@ def load_policy_weights(model: Any, path: str | Path, log_std: float) -> None:
 
 def frozen_initial_policy(model: Any, path: str | Path) -> Any:
     """A frozen copy of ``model``'s policy holding the weights of ``path`` (the anchor of ``bc_coef``)."""
-    import copy
-
     anchor = copy.deepcopy(model.policy)
     anchor.load_state_dict(policy_weights(path, model))
     anchor.set_training_mode(False)

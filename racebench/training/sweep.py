@@ -58,11 +58,14 @@ import dataclasses
 import json
 import logging
 import re
+import shutil
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import pandas as pd
 
 from racebench.agents.export import export_policy
 from racebench.agents.loading import SB3Agent
@@ -370,8 +373,6 @@ def export_run_policy(checkpoint: Path, out: Path, run_dir: Path, trust_code: bo
     """A run's final checkpoint without its optimizer state (``racebench export-policy``), the file to commit;
     observation-normalising statistics are copied beside it (reward-only ones change no action). Both are listed in
     the run folder's ``written.json``, so the run's evaluation loads them without ``--trust-code``."""
-    import shutil
-
     agent = SB3Agent(checkpoint, trust_code=own_policy_trust(run_dir, checkpoint, trust_code))
     out.parent.mkdir(parents=True, exist_ok=True)
     written = [export_policy(agent.model, out)]
@@ -407,8 +408,6 @@ def run_sweep(
     ``cpus``/``gpus``; Ray re-runs a task whose worker or node died (``ray_options.max_retries``), which resumes
     from the run's folder.
     """
-    import pandas as pd
-
     rows: dict[str, dict[str, Any]] = {}
 
     def finish(run: SweepRun, row: dict[str, Any]) -> None:

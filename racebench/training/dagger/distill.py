@@ -45,6 +45,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import pandas as pd
 import torch
 from tqdm.auto import tqdm
 
@@ -105,8 +106,6 @@ def distill(config: DaggerConfig, out: str | Path, eval_episodes: int = 10, resu
     After every iteration the run's state is saved in ``out/resume/``; ``resume=True`` continues from it (the
     same student, optimizer, dataset and random streams: the same result as a run never interrupted, tested).
     """
-    import pandas as pd
-
     config.validate()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

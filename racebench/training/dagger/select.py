@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import pandas as pd
 import torch
 
 from racebench.evaluation.protocol import VALIDATION_SEED_BASE
@@ -71,8 +72,6 @@ def choose_student(
     latest), ``"last"`` the last iteration's student. ``training_seeds`` is the ``[first, end)`` range the run trained
     on: validation scenes must lie outside it. Returns the chosen candidate's row (its label alone without flights).
     """
-    import pandas as pd
-
     seeds = [VALIDATION_SEED_BASE + i for i in range(config.select_episodes)]
     if seeds and max(training_seeds[0], seeds[0]) < min(training_seeds[1], seeds[-1] + 1):
         raise ValueError(f"dagger: validation seeds {seeds[0]}..{seeds[-1]} overlap the training seeds "
