@@ -193,7 +193,7 @@ def _export_onnx(args: argparse.Namespace) -> int:
 def _distill(args: argparse.Namespace) -> int:
     """``racebench distill``: DAgger distillation from the built-in settings."""
     from racebench.training.dagger.config import DaggerConfig
-    from racebench.training.dagger.distill import distill
+    from racebench.training.dagger.loop import distill
 
     config = DaggerConfig(
         track=args.track, iterations=args.iterations, steps_per_iteration=args.steps_per_iteration,

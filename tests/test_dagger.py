@@ -730,7 +730,7 @@ def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_
     (tmp_path / KEPT_DIR / "vision-dagger-S-it000.zip").unlink()
 
     # The ranking itself, with made-up validation outcomes per candidate (flown in the order it001, it002, average).
-    import racebench.training.dagger.select as dagger  # where choose_student looks fly_student up
+    import racebench.training.dagger.selection as dagger  # where choose_student looks fly_student up
 
     student = SB3Agent(summary["checkpoint"], trust_code=True).model
     for counts, winner in (([2, 3, 3], "average"), ([3, 2, 1], "it001"), ([1, 3, 2], "it002"), ([0, 0, 0], "average")):

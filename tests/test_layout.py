@@ -9,6 +9,7 @@ import json
 import re
 import zipfile
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -202,6 +203,17 @@ FORMER_NAMES: tuple[tuple[str, str], ...] = (
 @pytest.mark.parametrize(("module", "name"), FORMER_NAMES)
 def test_former_import_paths_still_work(module: str, name: str) -> None:
     assert getattr(importlib.import_module(module), name) is not None
+
+
+@pytest.mark.parametrize("package", ["racebench.agents", "racebench.evaluation", "racebench.training.dagger"])
+def test_a_reexported_name_is_never_shadowed_by_a_submodule(package: str) -> None:
+    """A package re-exports its former module's names lazily; a submodule of the same name would replace the name
+    (the import system sets it on the package) once that submodule is imported."""
+    module = importlib.import_module(package)
+    for path in sorted((ROOT / package.replace(".", "/")).glob("*.py")):
+        if path.stem != "__init__":
+            importlib.import_module(f"{package}.{path.stem}")
+    assert [name for name in module.__all__ if isinstance(getattr(module, name), ModuleType)] == []
 
 
 def test_a_former_module_path_is_the_module_that_replaced_it() -> None:

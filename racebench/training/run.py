@@ -10,7 +10,7 @@ from typing import Any
 
 from racebench.training.config import TrainConfig, baseline_path
 from racebench.training.dagger.config import DaggerConfig
-from racebench.training.dagger.distill import distill
+from racebench.training.dagger.loop import distill
 from racebench.training.dagger.resume import completed_iterations
 from racebench.training.ppo import train
 from racebench.utils.yamlfile import read_yaml
@@ -31,7 +31,7 @@ def run_training(
     eval_episodes: int = 10, device: str = "auto", checkpoint_every: int = 50_000, trust_code: bool = False,
 ) -> dict[str, Any]:  # fmt: skip
     """Train ``config`` (from :func:`load_config`) on ``track``: PPO through :func:`train`, DAgger through
-    :func:`racebench.training.dagger.distill.distill` with ``ceil(steps / steps_per_iteration)`` iterations. As for
+    :func:`racebench.training.dagger.loop.distill` with ``ceil(steps / steps_per_iteration)`` iterations. As for
     PPO, with ``resume`` the ``steps`` are the steps to add; a DAgger run resumes from its run folder (its
     whole state is kept there, not in a zip), so ``resume`` must name that folder. ``trust_code``: see :func:`train`
     (a DAgger resume reads tensors and arrays only and needs no trust)."""

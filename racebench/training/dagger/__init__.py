@@ -1,16 +1,15 @@
-"""DAgger: a depth student imitates a privileged planner (``method: dagger`` configs; see :mod:`.distill`).
+"""DAgger: a depth student imitates a privileged planner (``method: dagger`` configs; see :mod:`.loop`).
 
 * :mod:`~racebench.training.dagger.config`: :class:`DaggerConfig`; :mod:`~racebench.training.dagger.dataset`: the
   aggregate;
-* :mod:`~racebench.training.dagger.collect.collect`: rollouts and labels; :mod:`~racebench.training.dagger.fit.fit`:
-fitting the
-  student; :mod:`~racebench.training.dagger.select`: choosing the final student;
-* :mod:`~racebench.training.dagger.resume`: a run's resumable state;
-:mod:`~racebench.training.dagger.distill`: the
+* :mod:`~racebench.training.dagger.collection`: rollouts and labels; :mod:`~racebench.training.dagger.fitting`:
+  fitting the student; :mod:`~racebench.training.dagger.selection`: choosing the final student;
+* :mod:`~racebench.training.dagger.resume`: a run's resumable state; :mod:`~racebench.training.dagger.loop`: the
   main loop (:func:`distill`).
 
 The names of the former module ``racebench.training.dagger`` are re-exported here (the student's network
-helpers from :mod:`racebench.training.student`).
+helpers from :mod:`racebench.training.student`). No submodule is named like a function it holds, so that
+``from racebench.training.dagger import fit`` is always the function.
 """
 
 from __future__ import annotations
@@ -32,19 +31,19 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "DaggerConfig",
     ),
     "dataset": ("Dataset",),
-    "collect": (
+    "collection": (
         "line_ahead",
         "clearance_ahead",
         "aux_target",
         "make_path_head",
         "collect",
     ),
-    "select": (
+    "selection": (
         "fly_student",
         "average_weights",
         "choose_student",
     ),
-    "fit": (
+    "fitting": (
         "dataset_features",
         "chunk_start_states",
         "sequence_loss",
@@ -67,7 +66,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "load_resume_state",
         "restore_state",
     ),
-    "distill": (
+    "loop": (
         "training_env_ids",
         "make_training_envs",
         "make_teacher",

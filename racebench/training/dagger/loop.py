@@ -54,10 +54,10 @@ from racebench.agents.loading import load_agent
 from racebench.agents.planner import FastPlannerAgent, PlannerAgent
 from racebench.agents.trust import own_policy_trust, record_written
 from racebench.evaluation.evaluator import Evaluator
-from racebench.training.dagger.collect import collect, make_path_head
+from racebench.training.dagger.collection import collect, make_path_head
 from racebench.training.dagger.config import DaggerConfig
 from racebench.training.dagger.dataset import Dataset
-from racebench.training.dagger.fit import fit, iteration_learning_rate
+from racebench.training.dagger.fitting import fit, iteration_learning_rate
 from racebench.training.dagger.resume import (
     KEPT_DIR,
     RESUME_DIR,
@@ -66,7 +66,7 @@ from racebench.training.dagger.resume import (
     restore_state,
     save_resume_state,
 )
-from racebench.training.dagger.select import choose_student
+from racebench.training.dagger.selection import choose_student
 from racebench.training.ppo import archive_finished_part
 from racebench.training.student import is_recurrent, make_student
 from racebench.utils.files import atomic_write
