@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy.stats import binomtest, bootstrap, fisher_exact
+from scipy.stats import binomtest, bootstrap, fisher_exact, norm
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -114,8 +114,6 @@ def trend_test(strata: list[tuple[list[float], list[int], list[int]]]) -> tuple[
     normal p-values. Unstratified, ``z**2`` equals ``N r**2``, r the Pearson correlation of score and outcome over
     the N episodes (Agresti, *Categorical Data Analysis*, 3rd ed., Sec. 5.3.5).
     """
-    from scipy.stats import norm
-
     statistic = variance = 0.0
     for scores, successes, trials in strata:
         if not len(scores) == len(successes) == len(trials):

@@ -7,7 +7,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, VecNormalize
 
 from racebench.agents.recurrent import RaceFeatures, RecurrentGRUPolicy
@@ -21,8 +23,6 @@ def policy_weights(path: str | Path, model: Any) -> dict[str, torch.Tensor]:
 
     Only the tensors are read (``load_from_zip_file(load_data=False)``: nothing unpickled, so no code runs).
     """
-    from stable_baselines3.common.save_util import load_from_zip_file
-
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"init_from: {path} is not a file (train or download the policy it names first)")
@@ -157,7 +157,6 @@ def make_model(config: TrainConfig, env: VecEnv, seed: int, tensorboard: str | N
         if config.action_output != "ctbr":
             policy_kwargs["action_output"] = config.action_output
         return RecurrentPPO(RecurrentGRUPolicy, env, policy_kwargs=policy_kwargs, **common)
-    from stable_baselines3 import PPO
 
     # The feed-forward ablation: a dense layer of the GRU's width where the GRU was.
     wide = [config.gru_hidden, *arch]

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 import yaml
 from stable_baselines3.common.callbacks import CallbackList
+from stable_baselines3.common.utils import FloatSchedule
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from racebench.agents.base import AgentLoadError
@@ -298,8 +299,6 @@ def restore_schedules(model: Any, config: TrainConfig) -> None:
     Ray's pin) loads without them, SB3 only warns, and training would go on at the class defaults (PPO's constant
     3e-4). The config is the source of truth for both.
     """
-    from stable_baselines3.common.utils import FloatSchedule
-
     model.learning_rate = linear_schedule(*config.learning_rate)
     model._setup_lr_schedule()
     model.clip_range = FloatSchedule(config.clip_range)
