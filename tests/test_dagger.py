@@ -375,7 +375,7 @@ def test_weight_decay_and_depth_shifts_reach_the_fit(tmp_path: Path) -> None:
     by a shift drawn from the run's generator, the same shift for all of a chunk's steps."""
     import torch
 
-    from racebench.training import dagger
+    from racebench.training.dagger import fitting as dagger  # where fit looks shift_depth up
 
     seen = []
     original = dagger.shift_depth
