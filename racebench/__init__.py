@@ -11,9 +11,11 @@ import os
 # measurable. A value the user set is kept.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from racebench.registration import ENV_IDS, ENV_VERSION, register_envs  # noqa: E402
+from racebench import compat  # noqa: E402
+from racebench.envs.registration import ENV_IDS, ENV_VERSION, register_envs  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["ENV_IDS", "ENV_VERSION", "__version__"]
 
+compat.install()
 register_envs()

@@ -7,7 +7,7 @@ One run measures, on this machine:
   caster one camera per call (as a single env) and all cameras in one call (as a vector env), their ratio,
   and how well the two images agree on those poses;
 * env steps/s for ``obs_mode="state"`` and ``"vision"``: a single env (vision with either renderer), and a
-  :class:`~racebench.vector.RaceVectorEnv` (ray caster) in one process and over two worker processes;
+  :class:`~racebench.envs.vector.RaceVectorEnv` (ray caster) in one process and over two worker processes;
 * training samples/s end to end (rollout + PPO update) of the ``state-ppo`` and ``vision-ppo`` baselines as
   configured, ``vision-ppo`` with either depth renderer (their ratio), and the share spent in the update;
 * evaluation steps/s of the committed ``vision-ppo`` checkpoint (either renderer) and ``state-ppo`` flown in
@@ -26,22 +26,34 @@ Everything is printed and written to a CSV (one row per measurement: section, na
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import os
 import platform
 import resource
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 
-from racebench.env import RaceEnv
-from racebench.raycast import BatchDepthRenderer
-from racebench.scene import Scene
-from racebench.vector import RaceVectorEnv
+from racebench.agents.export import export_onnx
+from racebench.agents.loading import load_agent
+from racebench.agents.planner import FastPlannerAgent
+from racebench.envs.env import RaceEnv
+from racebench.envs.vector import RaceVectorEnv
+from racebench.evaluation.protocol import EVAL_SEED_BASE
+from racebench.evaluation.rollout import run_lockstep
+from racebench.evaluation.worker import SingleTorchThread
+from racebench.sim.raycast import BatchDepthRenderer
+from racebench.sim.scene import Scene
+from racebench.training.callbacks import ThreadsCallback
+from racebench.training.config import TrainConfig
+from racebench.training.models import make_envs, make_model
 
 # The issue's targets, measured on a 2-core machine (not lowered here when a run misses them).
 TARGET_RENDER_RATIO = 10.0
@@ -270,12 +282,8 @@ def _bench_vector(rec: _Recorder, s: BenchSettings, obs_mode: str, processes: in
 def _bench_training(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
     """End-to-end training samples/s (env + PPO update) of the ``state-ppo`` and ``vision-ppo`` baselines as
     configured (``vision-ppo`` with both depth renderers), and the share of time spent in the update."""
-    import dataclasses
-
     import torch
     from stable_baselines3.common.callbacks import BaseCallback, CallbackList
-
-    from racebench.training.train import ThreadsCallback, TrainConfig, make_envs, make_model
 
     class PhaseTimer(BaseCallback):
         """Seconds spent in PPO updates: from each rollout's end to the next rollout's start."""
@@ -356,8 +364,6 @@ class _ActionLog:
 
     def make_env(self, env_id: str) -> Any:
         """A ``gym.make`` env whose ``reset_state``/``advance`` log the seed and the actions."""
-        import gymnasium as gym
-
         env = gym.make(env_id, obs_mode=self.obs_mode, renderer=self.renderer)
         raw = env.unwrapped
         reset_state, advance = raw.reset_state, raw.advance
@@ -382,20 +388,12 @@ def _bench_evaluation(rec: _Recorder, s: BenchSettings) -> dict[str, float]:
     The lockstep run records every action; "env alone" replays exactly those actions, open loop, in one env:
     the same episodes, so the same simulator work, without the policy. Their ratio is the evaluation's
     efficiency. Also the policy call itself at batch 1 and 64 on one and two torch threads (the evaluator
-    runs one thread per process: :func:`racebench.evaluation.torch_threads`).
+    runs one thread per process: :func:`racebench.evaluation.worker.torch_threads`).
     """
-    import gymnasium as gym
     import torch
-
-    from racebench.agents import load_agent
-    from racebench.evaluation import EVAL_SEED_BASE, SingleTorchThread
-    from racebench.rollout import run_lockstep
 
     ratios: dict[str, float] = {}
     env_id, episodes, width = f"RaceObs-{s.track}-v0", s.eval_episodes, s.eval_batch
-    import tempfile
-
-    from racebench.agents import export_onnx
 
     exported = Path(tempfile.mkdtemp(prefix="racebench-bench-"))
     runs = []
@@ -519,7 +517,6 @@ def _bench_parts(rec: _Recorder, s: BenchSettings) -> None:
         env.reset_state(seed=s.seed + k)
     reset = (time.perf_counter() - start) / 10 * 1e6
     # The fast expert plans at every episode start: in DAgger that is once per collected episode.
-    from racebench.planner import FastPlannerAgent
 
     expert = FastPlannerAgent()
     plans = 3 if s.single_steps < 400 else 10

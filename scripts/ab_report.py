@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from racebench.statistics import wilson_interval
+from racebench.evaluation.statistics import wilson_interval
 
 
 def run_row(folder: Path) -> dict:

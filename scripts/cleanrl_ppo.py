@@ -29,7 +29,7 @@ from torch import nn
 from torch.distributions.normal import Normal
 
 import racebench  # noqa: F401  (registers the ids)
-from racebench.quadrotor import QuadrotorParams
+from racebench.sim.quadrotor import QuadrotorParams
 
 
 def opt(default: Any, help_text: str) -> Any:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's racebench, not an installed one
-from racebench.records import (  # noqa: E402
+from racebench.evaluation.records import (  # noqa: E402
     LEGACY_DIR,
     TRAJECTORIES_DIR,
     InvalidRecordError,

@@ -34,8 +34,8 @@ import torch
 
 from racebench.agents import load_agent
 from racebench.evaluation import DEFAULT_BATCH
-from racebench.raycast import BatchDepthRenderer
-from racebench.rollout import BatchAgent, check_action
+from racebench.evaluation.rollout import BatchAgent, check_action
+from racebench.sim.raycast import BatchDepthRenderer
 from racebench.training.dagger import make_teacher
 from racebench.training.train import load_config
 

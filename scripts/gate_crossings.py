@@ -17,8 +17,8 @@ import gymnasium as gym
 import numpy as np
 
 import racebench  # noqa: F401  (registers the ids)
-from racebench.planner import FastPlannerAgent
-from racebench.records import read_trajectories
+from racebench.agents.planner import FastPlannerAgent
+from racebench.evaluation.records import read_trajectories
 
 
 def crossing_offset(path: np.ndarray, gate) -> np.ndarray | None:

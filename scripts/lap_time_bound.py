@@ -1,7 +1,7 @@
 """Lap-time bounds along planner-fast's racing line: how much of the gap to a target is the airframe's.
 
 For each scene, the fast expert's planned path (up to the finish crossing) is timed with the minimum-time
-speed profile of a point mass (no attitude dynamics; :func:`~racebench.planner.thrust_limited_speeds` on the
+speed profile of a point mass (no attitude dynamics; :func:`~racebench.agents.planner.thrust_limited_speeds` on the
 spline's own curvature) at two budgets:
 
 * the planner's own thrust budget (``thrust_accel``, its drag, its 12 m/s cap): what its profile would be
@@ -10,7 +10,7 @@ spline's own curvature) at two budgets:
   bound on any lap flown along that line (drag's help when braking aside, ≤ 0.05 v² m/s²). A target below it
   would be infeasible on that line; a target above it leaves the gap to path shape and tracking.
 
-Both hold along that one line only. The bound of any lap, on any line, is :mod:`racebench.lap_bound` (about half of
+Both hold along that one line only. The bound of any lap, on any line, is :mod:`racebench.envs.lap_bound` (about half of
 the airframe-ceiling column: the shortest line through the openings, a thrust aimed anywhere); record validation
 rejects a success below it.
 
@@ -25,8 +25,8 @@ import gymnasium as gym
 import numpy as np
 
 import racebench  # noqa: F401  (registers the ids)
+from racebench.agents.planner import FastPlannerAgent, gate_crossings, thrust_limited_speeds
 from racebench.evaluation import eval_seeds
-from racebench.planner import FastPlannerAgent, gate_crossings, thrust_limited_speeds
 
 
 def lap_time(arc: np.ndarray, speeds: np.ndarray) -> float:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from racebench.statistics import paired_outcomes, wilson_interval
+from racebench.evaluation.statistics import paired_outcomes, wilson_interval
 
 
 def load(folder: Path) -> pd.DataFrame:

@@ -21,9 +21,9 @@ import gymnasium as gym
 import numpy as np
 
 import racebench  # noqa: F401  (registers the ids)
-from racebench.planner import FastPlannerAgent
-from racebench.rollout import run_episode
-from racebench.statistics import wilson_interval
+from racebench.agents.planner import FastPlannerAgent
+from racebench.evaluation.rollout import run_episode
+from racebench.evaluation.statistics import wilson_interval
 
 
 def parse_settings(items: list[str]) -> dict[str, list[float | None]]:

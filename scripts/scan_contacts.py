@@ -2,8 +2,8 @@
 
 For each agent and main env id, flies the first ``--episodes`` evaluation seeds and records the drone at every
 physics substep. Every substep's path is then measured with ``tests/reference_geometry.py`` (closed-form
-sphere-to-box / cylinder / ground distances that share no code with ``racebench.scene`` or
-``racebench.collision``), sampled at ``--samples`` points per substep. It reports, per agent and env id:
+sphere-to-box / cylinder / ground distances that share no code with ``racebench.sim.scene`` or
+``racebench.sim.collision``), sampled at ``--samples`` points per substep. It reports, per agent and env id:
 
 * ``missed_touch``: substeps that came within the contact tolerance without ending the episode in a crash;
 * ``false_crash``: crashes whose last substep never came within the tolerance (+ the sweep resolution);
@@ -41,8 +41,8 @@ def scan(agent_spec: str, env_id: str, episodes: int, samples: int) -> dict:
     from reference_geometry import nearest_surface
 
     from racebench.agents import load_agent
-    from racebench.collision import CONTACT_TOLERANCE, SWEEP_RESOLUTION
     from racebench.evaluation import eval_seeds, run_episode
+    from racebench.sim.collision import CONTACT_TOLERANCE, SWEEP_RESOLUTION
 
     torch.set_num_threads(1)
     agent = load_agent(agent_spec)

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from racebench.agents import load_agent
-from racebench.sb3 import make_sb3_vec_env
+from racebench.training.sb3 import make_sb3_vec_env
 from racebench.training.train import TrainConfig
 
 

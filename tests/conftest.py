@@ -36,12 +36,12 @@ def _records_of_committed_code() -> Iterator[None]:
     stand for committed ones, and must not fail because the checkout running them has local edits. A test of the
     refusal writes its dirty record explicitly. (In-process only: a worker process sees the real state.)
     """
-    import racebench.evaluation
-    from racebench.records import git_state
+    import racebench.evaluation.writer
+    from racebench.evaluation.records import git_state
 
     commit, _ = git_state()
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(racebench.evaluation, "git_state", lambda: (commit, False))
+        patch.setattr(racebench.evaluation.writer, "git_state", lambda: (commit, False))
         yield
 
 

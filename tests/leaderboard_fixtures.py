@@ -11,10 +11,10 @@ import onnx
 from onnx import TensorProto, helper
 
 from racebench.evaluation import Evaluator
+from racebench.evaluation.records import RECORDS_FILE, compact_folder, record_line, seal
+from racebench.evaluation.seeds import salt_sha256
 from racebench.leaderboard.entries import add_entry
-from racebench.leaderboard.seeds import salt_sha256
-from racebench.quadrotor import QuadrotorParams
-from racebench.records import RECORDS_FILE, compact_folder, record_line, seal
+from racebench.sim.quadrotor import QuadrotorParams
 
 ENV = "RaceObs-S-Level1-v0"  # no obstacles: hover and the planner run quickly and deterministically
 SALT = "leaderboard-test-salt-7d2f9c41b8e6"
@@ -25,7 +25,7 @@ GC_AGENT = textwrap.dedent(
     """
     import gc
 
-    from racebench.control import GateFollower
+    from racebench.agents.control import GateFollower
 
 
     class Sneaky:
@@ -36,7 +36,7 @@ GC_AGENT = textwrap.dedent(
             self.follower = GateFollower()
 
         def reset(self, env=None, seed=None):
-            from racebench.env import RaceEnv
+            from racebench.envs.env import RaceEnv
 
             # The live env of this episode: reset with this episode's seed, not closed (old envs linger in memory).
             self.env = next(
@@ -140,7 +140,7 @@ def forge_successes(folder: Path) -> int:
     A hover episode runs to the time limit, so claiming every gate passed with the lap at its last step is
     consistent record by record: only the statistical replay can catch it.
     """
-    from racebench.records import env_facts
+    from racebench.evaluation.records import env_facts
 
     count = 0
 
@@ -178,8 +178,8 @@ def write_records(
     """
     from racebench.agents import policy_identity
     from racebench.evaluation import RecordWriter
-    from racebench.leaderboard.seeds import seeds_for
-    from racebench.records import env_facts
+    from racebench.evaluation.records import env_facts
+    from racebench.evaluation.seeds import seeds_for
 
     identity = policy_identity(spec)
     salt = SALT if seed_set == "private" else None

@@ -1,6 +1,6 @@
 """An independent sphere-to-scene distance, written from first principles for checking the crash detector.
 
-It shares no code with :mod:`racebench.scene` or :mod:`racebench.collision`: gate bars are rebuilt from the
+It shares no code with :mod:`racebench.sim.scene` or :mod:`racebench.sim.collision`: gate bars are rebuilt from the
 gate's inner/outer size and depth, boxes are measured by clamping in their own frame, cylinders by radial
 and vertical excess. Vectorised over many points (the contact scan checks every physics substep).
 """

@@ -15,8 +15,8 @@ from pathlib import Path
 
 from gymnasium.utils import seeding
 
-from racebench.env import RaceEnv
-from racebench.registration import ENV_KWARGS, ENV_VERSION
+from racebench.envs.env import RaceEnv
+from racebench.envs.registration import ENV_KWARGS, ENV_VERSION
 
 #: Training-range seeds 0-99 and a sample of the evaluation seeds (1_000_000 + episode index).
 SEED_GROUPS: dict[str, list[int]] = {

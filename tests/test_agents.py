@@ -27,7 +27,7 @@ from racebench.agents import (
     python_agent_modules,
     vecnormalize_path,
 )
-from racebench.records import sha256_file
+from racebench.evaluation.records import sha256_file
 
 ROOT = Path(__file__).parents[1]
 LEVEL1 = "RaceObs-S-Level1-v0"

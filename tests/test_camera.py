@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from racebench.camera import DepthCamera
-from racebench.quadrotor import QuadrotorParams
-from racebench.scene import Obstacle, Scene, arena_bounds
-from racebench.simulation import Simulation
-from racebench.track import load_track
+from racebench.sim.camera import DepthCamera
+from racebench.sim.quadrotor import QuadrotorParams
+from racebench.sim.scene import Obstacle, Scene, arena_bounds
+from racebench.sim.simulation import Simulation
+from racebench.sim.track import load_track
 
 TRACK = load_track("S")
 

@@ -6,7 +6,7 @@ bit-identical replay is not a promise the benchmark can make for learned policie
 success rate: on any machine, a replay of the first :data:`REPLAY` evaluation seeds of its track's main id
 (``RaceObs-<track>-v0``, the track the checkpoint's folder name ends with) must be consistent with the committed
 count (Fisher's exact test, false-fail rate at most
-:data:`~racebench.statistics.CONSISTENCY_ALPHA` = 0.1 %). With 100 committed and 40 replayed episodes, a
+:data:`~racebench.evaluation.statistics.CONSISTENCY_ALPHA` = 0.1 %). With 100 committed and 40 replayed episodes, a
 committed count moved by :data:`DOCTORED` episodes or more, in either direction the range allows, is
 rejected (``test_a_doctored_claim_is_rejected``). Bit-identical replay is tested where it holds: built-in
 agents on one machine (``tests/test_records.py``).
@@ -23,8 +23,8 @@ import yaml
 from racebench import ENV_VERSION
 from racebench.agents import TRUSTED_CHECKPOINTS
 from racebench.evaluation import Evaluator, load_records
-from racebench.records import sha256_file
-from racebench.statistics import counts_consistent
+from racebench.evaluation.records import sha256_file
+from racebench.evaluation.statistics import counts_consistent
 
 ROOT = Path(__file__).parents[1]
 CHECKPOINTS = sorted(ROOT.glob("baselines/checkpoints/*/*.zip"))

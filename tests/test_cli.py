@@ -305,7 +305,7 @@ def test_no_pybullet_banner_even_on_commands_that_load_it(tmp_path: Path) -> Non
         for path in sorted((ROOT / "racebench").rglob("*.py"))
         if re.search(r"^\s*(import pybullet\b|from pybullet(_utils)? import)", path.read_text(), re.M)
     ]
-    assert importers == ["racebench/bullet.py"]
+    assert importers == ["racebench/sim/bullet.py"]
 
 
 # ------------------------------------------------------- YAML files with Python tags

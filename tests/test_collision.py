@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from reference_geometry import nearest_surface  # tests/ is on sys.path (pytest rootdir-less import)
 
-from racebench.collision import CONTACT_TOLERANCE, SWEEP_RESOLUTION, CollisionChecker
-from racebench.env import RaceEnv
-from racebench.scene import Obstacle
+from racebench.envs.env import RaceEnv
+from racebench.sim.collision import CONTACT_TOLERANCE, SWEEP_RESOLUTION, CollisionChecker
+from racebench.sim.scene import Obstacle
 
 SPEEDS = (1.0, 4.0, 10.0, 20.0)
 R = 0.12  # QuadrotorParams().collision_radius

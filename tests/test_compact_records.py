@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from racebench.evaluation import Evaluator, load_records
-from racebench.records import (
+from racebench.evaluation.records import (
     RECORDS_FILE,
     TRAJECTORIES_FILE,
     atomic_write,

@@ -229,7 +229,7 @@ def test_fit_samples_caps_each_fit_and_numbers_load_from_yaml(tmp_path: Path) ->
 
 
 def test_the_teacher_is_built_with_its_settings() -> None:
-    from racebench.planner import FastPlannerAgent, PlannerAgent
+    from racebench.agents.planner import FastPlannerAgent, PlannerAgent
     from racebench.training.dagger import make_teacher
 
     centred = make_teacher(DaggerConfig(teacher_gate_clearance=0.5))
@@ -375,7 +375,7 @@ def test_weight_decay_and_depth_shifts_reach_the_fit(tmp_path: Path) -> None:
     by a shift drawn from the run's generator, the same shift for all of a chunk's steps."""
     import torch
 
-    from racebench.training import dagger
+    from racebench.training.dagger import fitting as dagger  # where fit looks shift_depth up
 
     seen = []
     original = dagger.shift_depth
@@ -730,7 +730,7 @@ def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_
     (tmp_path / KEPT_DIR / "vision-dagger-S-it000.zip").unlink()
 
     # The ranking itself, with made-up validation outcomes per candidate (flown in the order it001, it002, average).
-    import racebench.training.dagger as dagger
+    import racebench.training.dagger.selection as dagger  # where choose_student looks fly_student up
 
     student = SB3Agent(summary["checkpoint"], trust_code=True).model
     for counts, winner in (([2, 3, 3], "average"), ([3, 2, 1], "it001"), ([1, 3, 2], "it002"), ([0, 0, 0], "average")):
@@ -887,8 +887,8 @@ def test_clearance_ahead_is_the_free_distance_at_the_probes() -> None:
     at the cap."""
     from scipy.spatial.transform import Rotation
 
-    from racebench.scene import Obstacle, Scene
-    from racebench.track import load_track
+    from racebench.sim.scene import Obstacle, Scene
+    from racebench.sim.track import load_track
     from racebench.training.dagger import CLEARANCE_CAP_M, CLEARANCE_PROBES, aux_target, clearance_ahead
 
     track = load_track("S")
@@ -1008,7 +1008,7 @@ def test_a_mixture_head_keeps_both_modes_of_bimodal_labels_where_the_mse_average
     one of them, not their average."""
     import torch
 
-    from racebench.training.policies import MixtureActionHead, mixture_action_loss
+    from racebench.agents.recurrent import MixtureActionHead, mixture_action_loss
 
     torch.manual_seed(0)
     latent = torch.ones(256, 8)
@@ -1034,7 +1034,7 @@ def test_a_mixture_head_keeps_both_modes_of_bimodal_labels_where_the_mse_average
 def test_the_mixture_loss_is_the_mse_when_one_candidate_takes_all_and_the_head_flies_the_top_score() -> None:
     import torch
 
-    from racebench.training.policies import MixtureActionHead, mixture_action_loss
+    from racebench.agents.recurrent import MixtureActionHead, mixture_action_loss
 
     head = MixtureActionHead(3, 4, components=3)
     latent = torch.randn(5, 3)
@@ -1060,8 +1060,8 @@ def test_a_mixture_student_is_distilled_and_flown_by_the_evaluator_as_trained(tm
     import gymnasium as gym
     import torch
 
+    from racebench.agents.recurrent import MixtureActionHead
     from racebench.training.dagger import student_features, student_unroll
-    from racebench.training.policies import MixtureActionHead
     from racebench.training.train import TrainConfig
 
     student = tmp_path / "student.yaml"
@@ -1122,7 +1122,7 @@ def test_an_acceleration_student_is_taught_the_experts_commands_and_flown_throug
     import torch
 
     from racebench.agents import export_onnx, load_agent
-    from racebench.control import command_to_ctbr
+    from racebench.agents.control import command_to_ctbr
     from racebench.training.dagger import collect, make_student, student_features, student_unroll
     from racebench.training.train import TrainConfig, train
 

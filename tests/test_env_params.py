@@ -21,9 +21,10 @@ import yaml
 from scene_digest import SEED_GROUPS, all_digests  # tests/ is on sys.path (pytest rootdir-less import)
 
 import racebench
-from racebench import env as env_module
-from racebench.env import RaceEnv
-from racebench.obstacles import (
+from racebench.envs import env as env_module
+from racebench.envs.env import RaceEnv
+from racebench.envs.registration import CURRICULUM, ENV_KWARGS, ENV_VERSION
+from racebench.sim.obstacles import (
     MAX_ATTEMPTS,
     MAX_DENSITY,
     MAX_GATE_SHIFT,
@@ -31,9 +32,8 @@ from racebench.obstacles import (
     MAX_SCENE_OBSTACLES,
     ObstacleGenerator,
 )
-from racebench.quadrotor import PARAM_RANGES, QuadrotorParams
-from racebench.registration import CURRICULUM, ENV_KWARGS, ENV_VERSION
-from racebench.track import load_track, parse_track
+from racebench.sim.quadrotor import PARAM_RANGES, QuadrotorParams
+from racebench.sim.track import load_track, parse_track
 
 ROOT = Path(__file__).parents[1]
 NAN, INF = float("nan"), float("inf")

@@ -11,7 +11,7 @@ from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import racebench
-from racebench.registration import ENV_KWARGS
+from racebench.envs.registration import ENV_KWARGS
 
 ALL_IDS = racebench.ENV_IDS
 
@@ -276,7 +276,7 @@ def test_uint8_depth_passes_both_checkers_without_a_warning(env_id: str) -> None
 
 
 def test_uint8_depth_is_the_float_image_rounded_and_deterministic() -> None:
-    from racebench.env import depth_to_uint8
+    from racebench.envs.env import depth_to_uint8
 
     small, plain = gym.make("RaceObs-S-v0", depth_format="uint8"), gym.make("RaceObs-S-v0")
     a, b = rollout(small, seed=5, steps=40), rollout(plain, seed=5, steps=40)
@@ -300,7 +300,7 @@ def test_uint8_depth_is_the_float_image_rounded_and_deterministic() -> None:
 
 
 def test_the_spec_time_limit_is_the_envs_own() -> None:
-    from racebench.registration import MAX_EPISODE_STEPS
+    from racebench.envs.registration import MAX_EPISODE_STEPS
 
     for env_id in ALL_IDS:
         assert gym.spec(env_id).max_episode_steps == MAX_EPISODE_STEPS
@@ -311,7 +311,7 @@ def test_the_spec_time_limit_is_the_envs_own() -> None:
 
 def test_time_limit_truncates_once_on_the_envs_own_step() -> None:
     """gym.make's TimeLimit and the env's own limit end the same episode on the same step, with the same flags."""
-    from racebench.env import RaceEnv
+    from racebench.envs.env import RaceEnv
 
     wrapped = gym.make("RaceObs-S-Level1-v0", obs_mode="state")
     bare = RaceEnv(**{**ENV_KWARGS["RaceObs-S-Level1-v0"], "obs_mode": "state"})

@@ -33,8 +33,8 @@ from racebench.evaluation import (
     split_env_id,
     wilson_interval,
 )
-from racebench.records import atomic_write, name_of, read_folder, read_trajectories, validate_record
-from racebench.tables import make_table
+from racebench.evaluation.records import atomic_write, name_of, read_folder, read_trajectories, validate_record
+from racebench.reporting.tables import make_table
 
 # ------------------------------------------------------------------ statistics
 
@@ -380,7 +380,7 @@ FIXED_SUMMARY = DATA / "summary_fixed.csv"
 def test_tables_bold_only_where_95_percent_intervals_separate() -> None:
     """10/10 against 9/10 is not a result (Wilson [72–100] meets [60–98]); 10/10 against 2/10 is. Lap times:
     bold only where Student's t intervals of the means separate."""
-    from racebench.statistics import wilson_interval
+    from racebench.evaluation.statistics import wilson_interval
 
     def row(agent: str, k: int, lap: float, std: float, privileged: bool = False) -> dict:
         low, high = wilson_interval(k, 10)
@@ -408,8 +408,8 @@ def test_table_ii_from_a_fixed_csv() -> None:
 def test_seeds_pooled_into_one_row_per_config_with_their_mean_and_range() -> None:
     """``--seeds mean``: a sweep's rows <config>-seed<k> become one row of the seeds' mean success rate, the range over
     the seeds in brackets, and bold only where the worst seed beats every other row's interval."""
-    from racebench.statistics import wilson_interval
-    from racebench.tables import over_seeds
+    from racebench.evaluation.statistics import wilson_interval
+    from racebench.reporting.tables import over_seeds
 
     def row(agent: str, k: int, lap: float, env: str = "RaceObs-S-v0") -> dict:
         low, high = wilson_interval(k, 10)
@@ -446,7 +446,7 @@ def test_table_latex_is_booktabs_with_bold_and_ci() -> None:
 
 
 def test_training_curves_figure_from_progress_files(tmp_path: Path) -> None:
-    from racebench.plots import plot_training_curves
+    from racebench.reporting.plots import plot_training_curves
 
     run = tmp_path / "run"
     run.mkdir()
@@ -607,7 +607,7 @@ def test_lockstep_agent_failures_end_only_their_episodes(tmp_path: Path) -> None
 def test_the_in_process_evaluator_runs_torch_on_its_configured_threads(tmp_path: Path) -> None:
     import torch
 
-    from racebench import evaluation
+    from racebench.evaluation import worker
 
     path = tmp_path / "thread_probe.py"
     path.write_text(BATCH_AGENTS)
@@ -616,9 +616,9 @@ def test_the_in_process_evaluator_runs_torch_on_its_configured_threads(tmp_path:
     try:
         Evaluator(f"{path}:NanInSlotZero", ["RaceObs-S-Level1-v0"], episodes=2, out_dir=tmp_path / "o",
                   trust_code=True, batch=2).run(progress=False)  # fmt: skip
-        agent = evaluation._WORKER["agent"]  # the in-process evaluator's agent
+        agent = worker.WORKER["agent"]  # the in-process evaluator's agent
         seen = agent.act_batch.__globals__["SEEN_THREADS"]  # torch threads at each of its policy calls
-        assert seen and set(seen) == {evaluation.torch_threads()}
+        assert seen and set(seen) == {worker.torch_threads()}
         assert torch.get_num_threads() == 2  # restored afterwards
     finally:
         torch.set_num_threads(before)

@@ -273,7 +273,7 @@ def test_crash_visibility_counts_the_hit_obstacles_pixels_and_replays_crashes(tm
     import gymnasium as gym
 
     from racebench.evaluation import Evaluator
-    from racebench.raycast import BatchDepthRenderer
+    from racebench.sim.raycast import BatchDepthRenderer
 
     spec = importlib.util.spec_from_file_location("crash_visibility", ROOT / "scripts" / "crash_visibility.py")
     module = importlib.util.module_from_spec(spec)

@@ -14,7 +14,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 import racebench  # noqa: F401  (registers the ids)
 from racebench import cli
 from racebench.agents import OnnxAgent, SB3Agent, export_onnx, load_agent
-from racebench.env import depth_to_uint8
+from racebench.envs.env import depth_to_uint8
 
 ROOT = Path(__file__).parents[1]
 LEVEL1 = "RaceObs-S-Level1-v0"

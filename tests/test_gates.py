@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from racebench.track import Gate
+from racebench.sim.track import Gate
 
 GATE = Gate(center=np.array([3.0, 0.0, 1.0]), yaw=0.0)
 SIDE = Gate(center=np.array([0.0, 0.0, 2.0]), yaw=np.pi / 2)  # faces +y

@@ -12,10 +12,8 @@ import yaml
 from leaderboard_fixtures import add, make_repo, meta
 
 from racebench import cli
-from racebench.lap_bound import env_lap_time_bound, lap_geometry, lap_time_lower_bound, min_time_from_rest
-from racebench.leaderboard.entries import EntryError
-from racebench.quadrotor import QuadrotorParams
-from racebench.records import (
+from racebench.envs.lap_bound import env_lap_time_bound, lap_geometry, lap_time_lower_bound, min_time_from_rest
+from racebench.evaluation.records import (
     RECORDS_FILE,
     InvalidRecordError,
     env_facts,
@@ -25,7 +23,9 @@ from racebench.records import (
     seal,
     validate_record,
 )
-from racebench.track import load_track
+from racebench.leaderboard.entries import EntryError
+from racebench.sim.quadrotor import QuadrotorParams
+from racebench.sim.track import load_track
 
 ROOT = Path(__file__).parents[1]
 PARAMS = QuadrotorParams()

@@ -23,6 +23,8 @@ from leaderboard_fixtures import (
 from racebench import cli
 from racebench.agents import BUILTIN_PRIVILEGED, TRUSTED_CHECKPOINTS
 from racebench.evaluation import EVAL_SEED_BASE
+from racebench.evaluation.records import seal
+from racebench.evaluation.seeds import salt_sha256
 from racebench.leaderboard.entries import (
     DEFAULT_LEADERBOARD,
     MAIN_IDS,
@@ -33,9 +35,7 @@ from racebench.leaderboard.entries import (
     policy_sha256,
     summarize_cells,
 )
-from racebench.leaderboard.seeds import salt_sha256
 from racebench.leaderboard.site import entry_row
-from racebench.records import seal
 
 ROOT = Path(__file__).parents[1]
 

@@ -11,16 +11,7 @@ import pytest
 import racebench  # noqa: F401 - registers the ids
 from racebench import cli
 from racebench.evaluation import EVAL_SEED_BASE, Evaluator, MixedResultsError, eval_seeds, load_records
-from racebench.leaderboard.seeds import (
-    PRIVATE_SEED_BASE,
-    PUBLIC_SEED_BASE,
-    SALT_ENV,
-    SeedSetError,
-    private_seeds,
-    salt_sha256,
-    seeds_for,
-)
-from racebench.records import (
+from racebench.evaluation.records import (
     MAX_PUBLIC_EPISODES,
     RECORDS_FILE,
     InvalidRecordError,
@@ -28,6 +19,15 @@ from racebench.records import (
     read_folder,
     seal,
     validate_record,
+)
+from racebench.evaluation.seeds import (
+    PRIVATE_SEED_BASE,
+    PUBLIC_SEED_BASE,
+    SALT_ENV,
+    SeedSetError,
+    private_seeds,
+    salt_sha256,
+    seeds_for,
 )
 
 ENV = "RaceObs-S-Level1-v0"  # no obstacles: hover runs fast

@@ -13,12 +13,12 @@ import yaml
 from leaderboard_fixtures import SALT, add, make_key, make_repo, write_config, write_hover_onnx, write_records
 
 from racebench import cli
+from racebench.evaluation.records import read_folder
+from racebench.evaluation.seeds import SALT_ENV, private_seeds, salt_sha256
 from racebench.leaderboard import signing
 from racebench.leaderboard.entries import DEFAULT_LEADERBOARD, dump_entry, file_sha256, load_config, load_entry
-from racebench.leaderboard.seeds import SALT_ENV, private_seeds, salt_sha256
 from racebench.leaderboard.signing import SignatureError, build_payload, records_sha256
 from racebench.leaderboard.site import build_site, entry_row
-from racebench.records import read_folder
 
 ROOT = Path(__file__).parents[1]
 S = "RaceObs-S-v0"

@@ -14,8 +14,8 @@ import pytest
 from leaderboard_fixtures import GC_AGENT, SALT, add, evaluate, make_key, make_repo, write_hover_onnx, write_records
 
 from racebench import cli
+from racebench.evaluation.statistics import wilson_interval
 from racebench.leaderboard.entries import MAIN_IDS
-from racebench.statistics import wilson_interval
 
 ROOT = Path(__file__).parents[1]
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -175,7 +175,7 @@ def test_probability_of_improvement_within_a_tier(site: Path) -> None:
 def test_probability_of_improvement_is_mann_whitney_u_over_n_m() -> None:
     from scipy.stats import mannwhitneyu
 
-    from racebench.leaderboard.site import probability_of_improvement
+    from racebench.evaluation.statistics import probability_of_improvement
 
     rng = np.random.default_rng(5)
     ids = ["A", "B"]
@@ -197,7 +197,7 @@ def test_paper_tables_bold_only_where_intervals_separate(site: Path) -> None:
     from types import SimpleNamespace
 
     from racebench.leaderboard.entries import Cell
-    from racebench.leaderboard.site import Row, table_ii_html
+    from racebench.leaderboard.ranking import Row, table_ii_html
 
     # On the fixture site no SR interval is separated from every rival's (strong's [60–98] meets verified's).
     table = parse(site / "index.html").tables["table-ii"]
@@ -231,7 +231,7 @@ def test_table_iii_rows_are_vision_ppo_and_its_ablations_in_the_papers_order() -
     from types import SimpleNamespace
 
     from racebench.leaderboard.entries import Cell
-    from racebench.leaderboard.site import Row, table_iii_html
+    from racebench.leaderboard.ranking import Row, table_iii_html
 
     def row(name: str, k: int, tier: str = "self-reported") -> Row:
         cell = Cell("RaceObs-S-v0", "public", 10, k, (5.0,) * k)
@@ -249,7 +249,7 @@ def test_table_iii_rows_are_vision_ppo_and_its_ablations_in_the_papers_order() -
 
 def test_entry_pages_show_trajectory_plots_and_on_demand_videos(tmp_path: Path, monkeypatch) -> None:
     """Trajectories saved with the records become a plot per main id; videos only with videos=True."""
-    import racebench.video
+    import racebench.reporting.video
     from racebench.leaderboard.site import build_site
 
     board = make_repo(tmp_path)
@@ -264,7 +264,7 @@ def test_entry_pages_show_trajectory_plots_and_on_demand_videos(tmp_path: Path, 
         Path(path).write_bytes(b"mp4")
         return Path(path), {}
 
-    monkeypatch.setattr(racebench.video, "render_episode_video", fake_video)
+    monkeypatch.setattr(racebench.reporting.video, "render_episode_video", fake_video)
     with_videos = build_site(board, tmp_path / "site", videos=True)
     page = (with_videos.parent / "entries" / "follow.html").read_text()
     assert page.count("<video") == 1 and (with_videos.parent / "entries" / "follow" / "S.mp4").is_file()

@@ -8,11 +8,11 @@ import pytest
 from leaderboard_fixtures import ENV, SALT, add, evaluate, folder_records, forge_successes, make_repo, rewrite_records
 
 from racebench import cli
+from racebench.evaluation.records import env_facts, seal
+from racebench.evaluation.seeds import SALT_ENV
+from racebench.evaluation.statistics import detectable_doctoring
 from racebench.leaderboard.entries import Cell, load_entry
-from racebench.leaderboard.seeds import SALT_ENV
 from racebench.leaderboard.verify import LAP_ABS_TOL_S, REPLAYED_FIELDS, check_cell, lap_tolerance, verify_entry
-from racebench.records import env_facts, seal
-from racebench.statistics import detectable_doctoring
 
 
 def cell(k: int, n: int, laps: tuple[float, ...] = ()) -> Cell:

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from racebench.obstacles import Footprints, ObstacleGenerator, find_corridor, footprint_distance
-from racebench.scene import Obstacle, Scene, arena_bounds
-from racebench.track import Gate, Track, load_track
+from racebench.sim.obstacles import Footprints, ObstacleGenerator, find_corridor, footprint_distance
+from racebench.sim.scene import Obstacle, Scene, arena_bounds
+from racebench.sim.track import Gate, Track, load_track
 
 TRACK_DIR = Path(__file__).parents[1] / "tracks"
 SEEDS_PER_TRACK = 1000

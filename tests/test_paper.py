@@ -10,7 +10,9 @@ import pandas as pd
 import pytest
 
 from racebench.cli import main
-from racebench.paper import (
+from racebench.envs.registration import DENSITIES, GATE_SHIFTS
+from racebench.evaluation.statistics import holm_adjust, trend_test
+from racebench.reporting.paper import (
     README_BEGIN,
     README_END,
     cell,
@@ -18,8 +20,6 @@ from racebench.paper import (
     replace_readme_block,
     write_report,
 )
-from racebench.registration import DENSITIES, GATE_SHIFTS
-from racebench.statistics import holm_adjust, trend_test
 
 ROOT = Path(__file__).parents[1]
 TRACKS = ("S", "Circle", "J")

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from racebench.env import RaceEnv
-from racebench.quadrotor import Quadrotor, QuadrotorParams
+from racebench.envs.env import RaceEnv
+from racebench.sim.quadrotor import Quadrotor, QuadrotorParams
 
 G = 9.81
 NO_DRAG = {"drag_coefficients": (0.0, 0.0, 0.0)}

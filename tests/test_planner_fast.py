@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from racebench.agents import BUILTIN_PRIVILEGED, load_agent
-from racebench.planner import (
+from racebench.agents.planner import (
     FastPlannerAgent,
     PlannerAgent,
     gate_crossings,
@@ -25,9 +25,9 @@ from racebench.planner import (
     scene_clearance,
     thrust_limited_speeds,
 )
-from racebench.raycast import ObstacleSight
-from racebench.rollout import run_episode
-from racebench.track import Gate
+from racebench.evaluation.rollout import run_episode
+from racebench.sim.raycast import ObstacleSight
+from racebench.sim.track import Gate
 
 
 def test_a_larger_gate_clearance_crosses_the_openings_nearer_their_centres():
@@ -378,7 +378,7 @@ def relax_in_numpy(
     tension: float = 0.05,
     push: float = 0.1,
 ) -> np.ndarray:
-    """:func:`racebench.planner.relax` as it was written before it was compiled: whole-array numpy steps, the
+    """:func:`racebench.agents.planner.relax` as it was written before it was compiled: whole-array numpy steps, the
     reference the compiled stage must match bit for bit."""
     gate_centres = np.array([g.center for g in scene.gates])
     offsets = np.concatenate([np.zeros((1, 3)), np.eye(3) * 0.02, -np.eye(3) * 0.02])
@@ -450,7 +450,7 @@ def test_the_experts_acceleration_command_flown_from_the_observation_is_its_acti
     """What an acceleration student is taught (``acceleration_command`` of the expert's ``command``), turned back into
     CTBR by ``command_to_ctbr`` from the public state observation alone, is the expert's own action at every step of a
     lap; the attitude read from the observed quaternion is the simulator's."""
-    from racebench.control import acceleration_command, command_to_ctbr, rotation_from_state
+    from racebench.agents.control import acceleration_command, command_to_ctbr, rotation_from_state
 
     expert = FastPlannerAgent(integral_gain=0.0, gate_clearance=0.5, wanted_clearance=0.6)
     obs, _ = s_env.reset(seed=1)
@@ -472,8 +472,8 @@ def test_the_experts_acceleration_command_flown_from_the_observation_is_its_acti
 def test_an_acceleration_command_is_in_the_heading_frame():
     """Level and facing +y (yaw 90 degrees), the command "forward at 10 m/s^2" tilts the thrust toward world +y: a
     positive roll rate ... by the sign of the SO(3) error; and with no acceleration asked, hover thrust (the weight)."""
-    from racebench.control import COMMAND_ACCEL_SCALE, acceleration_command, command_to_ctbr, heading_yaw
-    from racebench.quadrotor import QuadrotorParams
+    from racebench.agents.control import COMMAND_ACCEL_SCALE, acceleration_command, command_to_ctbr, heading_yaw
+    from racebench.sim.quadrotor import QuadrotorParams
 
     params = QuadrotorParams()
     yaw = math.pi / 2

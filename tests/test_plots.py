@@ -11,8 +11,9 @@ import pandas as pd
 import pytest
 from PIL import Image
 
-from racebench import cli, plots
+from racebench import cli
 from racebench.evaluation import read_summaries
+from racebench.reporting import plots
 
 ROOT = Path(__file__).parents[1]
 RESULTS = [str(ROOT / "results" / name) for name in ("hover", "planner")]

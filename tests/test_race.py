@@ -9,8 +9,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from racebench.control import GateFollower, acceleration_to_ctbr
-from racebench.env import RaceEnv
+from racebench.agents.control import GateFollower, acceleration_to_ctbr
+from racebench.envs.env import RaceEnv
 
 
 def run_follower(env: gym.Env, seed: int) -> tuple[dict, list[dict], float]:

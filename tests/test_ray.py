@@ -15,8 +15,8 @@ import pytest
 
 from racebench.cli import main
 from racebench.evaluation import EVAL_SEED_BASE, Evaluator, load_records
-from racebench.ray_backend import INSTALL_HINT, RayOptions
-from racebench.records import read_folder
+from racebench.evaluation.ray_backend import INSTALL_HINT, RayOptions
+from racebench.evaluation.records import read_folder
 
 
 def test_ray_backend_without_ray_says_how_to_install_it(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:

@@ -16,9 +16,9 @@ import pytest
 
 from racebench.cli import main
 from racebench.evaluation import load_records, read_summaries
-from racebench.ray_backend import RayOptions
-from racebench.sweep import latest_checkpoint, load_sweep, run_sweep, track_envs
-from racebench.tables import make_table
+from racebench.evaluation.ray_backend import RayOptions
+from racebench.reporting.tables import make_table
+from racebench.training.sweep import latest_checkpoint, load_sweep, run_sweep, track_envs
 
 # State observations, 2 envs in this process, 128-step updates: a run of 256 steps takes seconds.
 TINY = textwrap.dedent(
@@ -211,7 +211,7 @@ def test_entries_with_their_own_tracks_and_seeds_run_in_the_files_order_one_at_a
     curve = pd.read_csv(out / "tiny-J-seed0" / "validation_curve.csv")
     assert curve["timesteps"].tolist() == [128, 256] and set(curve["episodes"]) == {2}
     # Incremental: a kept row is not flown again, a missing multiple is (a run spanning sessions keeps its points).
-    from racebench.paper import validation_curve
+    from racebench.reporting.paper import validation_curve
 
     curve.loc[0, "successes"] = 99  # a marker: flown again, it would be 0, 1 or 2
     curve.iloc[:1].to_csv(out / "tiny-J-seed0" / "validation_curve.csv", index=False)
@@ -292,7 +292,7 @@ def test_a_chained_sweep_starts_a_run_from_the_final_policy_of_the_run_it_is_aft
 def test_a_chained_run_whose_predecessor_failed_is_reported_and_not_started(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import racebench.sweep as sweep_module
+    import racebench.training.sweep as sweep_module
 
     started = []
 

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from racebench.benchmark import depth_agreement, rotation_from_euler, sample_camera_poses
-from racebench.camera import DepthCamera
-from racebench.env import RaceEnv
-from racebench.quadrotor import QuadrotorParams
-from racebench.raycast import BatchDepthRenderer, ObstacleSight, cylinder_hull
-from racebench.scene import Obstacle, Scene, arena_bounds
-from racebench.simulation import Simulation
-from racebench.track import load_track
+from racebench.envs.env import RaceEnv
+from racebench.sim.camera import DepthCamera
+from racebench.sim.quadrotor import QuadrotorParams
+from racebench.sim.raycast import BatchDepthRenderer, ObstacleSight, cylinder_hull
+from racebench.sim.scene import Obstacle, Scene, arena_bounds
+from racebench.sim.simulation import Simulation
+from racebench.sim.track import load_track
 
 POSES_PER_TRACK = 540
 SCENES_PER_TRACK = 6

@@ -33,7 +33,7 @@ from racebench.evaluation import (
     read_summaries,
     summarize,
 )
-from racebench.records import (
+from racebench.evaluation.records import (
     RECORD_FIELDS,
     RECORDS_FILE,
     InvalidRecordError,
@@ -44,7 +44,7 @@ from racebench.records import (
     seal,
     validate_record,
 )
-from racebench.statistics import counts_consistent, detectable_doctoring
+from racebench.evaluation.statistics import counts_consistent, detectable_doctoring
 
 ENV = "RaceObs-S-Level1-v0"  # no obstacles: hover and the planner run quickly and deterministically
 ROOT = Path(__file__).parents[1]
@@ -356,7 +356,7 @@ def test_python_agents_need_trust_code_and_are_never_privileged(tmp_path: Path) 
 
 def test_the_allowlist_trusts_exactly_the_committed_bytes(tmp_path: Path) -> None:
     from racebench.agents import TRUSTED_CHECKPOINTS
-    from racebench.records import sha256_file
+    from racebench.evaluation.records import sha256_file
 
     committed = {sha256_file(p): p.relative_to(ROOT / "baselines/checkpoints").as_posix()
                  for p in (ROOT / "baselines/checkpoints").glob("*/*.zip")}  # fmt: skip

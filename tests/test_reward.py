@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from racebench.reward import REWARD_TERMS, RewardWeights, reward_terms, wrap_angle
+from racebench.envs.reward import REWARD_TERMS, RewardWeights, reward_terms, wrap_angle
 
 W = RewardWeights()
 

@@ -33,7 +33,7 @@ from racebench.agents import (
     vecnormalize_candidates,
 )
 from racebench.evaluation import Evaluator
-from racebench.records import read_folder, sha256_file
+from racebench.evaluation.records import read_folder, sha256_file
 
 ENV = "RaceObs-S-Level1-v0"
 # What the zoo writes (yaml.dump of OrderedDicts, hence the Python tags): never parsed by racebench.

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from racebench.track import BUILTIN_TRACKS, TrackFormatError, load_track
+from racebench.sim.track import BUILTIN_TRACKS, TrackFormatError, load_track
 
 TRACKS_DIR = Path(__file__).parents[1] / "tracks"
 

@@ -17,20 +17,18 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 from racebench import cli
 from racebench.agents import WRITTEN_FILE, AgentLoadError, SB3Agent, UntrustedCodeError, record_written, written_sha256
+from racebench.agents.recurrent import CNN_KINDS, LSTMShapedGRU, RecurrentGRUPolicy, depth_cnn
+from racebench.envs.registration import CURRICULUM
 from racebench.evaluation import EVAL_SEED_BASE
-from racebench.registration import CURRICULUM
-from racebench.sb3 import RaceSB3VecEnv
-from racebench.training.policies import CNN_KINDS, LSTMShapedGRU, RecurrentGRUPolicy, depth_cnn
+from racebench.training.callbacks import _save_atomically
+from racebench.training.ppo import _load_model, _restore_reward_stats, _trusted_reward_stats
+from racebench.training.sb3 import RaceSB3VecEnv
 from racebench.training.train import BASELINES as BASELINE_NAMES
 from racebench.training.train import (
     CurriculumCallback,
     MultiSceneCallback,
     ThreadsCallback,
     TrainConfig,
-    _load_model,
-    _restore_reward_stats,
-    _save_atomically,
-    _trusted_reward_stats,
     archive_finished_part,
     load_config,
     make_envs,
@@ -719,8 +717,8 @@ def replay_teacher_labels(env_kwargs: dict, seed: int, actions: np.ndarray) -> n
     (unseeded, as a vector env autoresets) whenever an episode ends: the labels a labelled vector env must give."""
     import gymnasium as gym
 
-    from racebench.env import RaceEnv
-    from racebench.planner import FastPlannerAgent
+    from racebench.agents.planner import FastPlannerAgent
+    from racebench.envs.env import RaceEnv
 
     limit = gym.spec("RaceObs-S-v0").max_episode_steps
     env, teacher = RaceEnv(**env_kwargs), FastPlannerAgent(**TEACHER)
@@ -743,7 +741,7 @@ def test_teacher_labels_are_its_actions_for_the_observations_returned(num_proces
     in reset_infos, the first of a new episode in the ending step's info; the observation itself is unchanged."""
     import gymnasium as gym
 
-    from racebench.sb3 import make_sb3_vec_env
+    from racebench.training.sb3 import make_sb3_vec_env
 
     kwargs = {"obs_mode": "state", "start_mode": "gates"}
     env = make_sb3_vec_env("RaceObs-S-v0", n_envs=2, seed=11, num_processes=num_processes, teacher=TEACHER, **kwargs)
@@ -772,7 +770,7 @@ def test_bc_to_the_teacher_clones_its_labels_of_the_rollout(tmp_path: Path) -> N
     """bc_target "teacher": the targets of each rollout are the teacher's actions for exactly the states in the
     rollout buffer (replayed alone from the buffer's actions, across rollouts and episode ends), and one BC step
     brings the policy's actions closer to them."""
-    from racebench.sb3 import make_sb3_vec_env
+    from racebench.training.sb3 import make_sb3_vec_env
     from racebench.training.train import TeacherBCCallback
 
     config = small(TrainConfig(name="t", obs_mode="state", bc_coef=1.0, bc_target="teacher"), vec_env="race",

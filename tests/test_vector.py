@@ -13,9 +13,9 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import racebench  # noqa: F401  (registers the ids)
-from racebench.env import RaceEnv
-from racebench.sb3 import RaceSB3VecEnv, make_sb3_vec_env
-from racebench.vector import RaceVectorEnv, concat_infos, stack_infos
+from racebench.envs.env import RaceEnv
+from racebench.envs.vector import RaceVectorEnv, concat_infos, stack_infos
+from racebench.training.sb3 import RaceSB3VecEnv, make_sb3_vec_env
 
 KWARGS = dict(track="S", density=3, renderer="raycast")
 
@@ -208,7 +208,7 @@ def test_uint8_depth_vector_env_equals_sync_vector_env() -> None:
 
 def test_lap_time_has_one_dtype_in_every_vectorization_mode() -> None:
     """Env 0 finishes a lap while env 1 hovers: Gymnasium's SyncVectorEnv and racebench's give float64 both."""
-    from racebench.control import GateFollower
+    from racebench.agents.control import GateFollower
 
     kwargs = dict(track="S", density=0, obs_mode="state", desired_speed=3.0)
     reference = SyncVectorEnv([lambda: RaceEnv(**kwargs) for _ in range(2)])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from racebench import cli
-from racebench.video import CAPTION_HEIGHT, CHASE_SIZE, render_episode_video
+from racebench.reporting.video import CAPTION_HEIGHT, CHASE_SIZE, render_episode_video
 
 ENV = "RaceObs-S-Level1-v0"
 

@@ -14,7 +14,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     lb = p_lb.add_subparsers(dest="leaderboard_command", required=True)
 
     p_add = lb.add_parser("add", help="create results/leaderboard/<name>/entry.yaml for a method's policies")
-    from racebench.agents import BUILTIN_AGENTS  # light: the built-ins' registry, for the help
+    from racebench.agents.base import BUILTIN_AGENTS  # light: the built-ins' registry, for the help
 
     p_add.add_argument("--policy", required=True, action="append", metavar="[TRACK=]POLICY",
                        help="policy file in the repository (.onnx, .zip, file.py:Class) or a built-in agent "
@@ -80,11 +80,11 @@ def run(args: argparse.Namespace) -> int:
     """Run the parsed ``racebench leaderboard`` command; bad input is a one-line :class:`SystemExit`."""
     import yaml
 
-    from racebench.agents import AgentLoadError
+    from racebench.agents.base import AgentLoadError
+    from racebench.evaluation.seeds import SeedSetError
     from racebench.leaderboard.entries import EntryError, add_entry, load_config, load_entries
-    from racebench.leaderboard.seeds import SeedSetError
     from racebench.leaderboard.signing import SignatureError
-    from racebench.yamlfile import yaml_problem
+    from racebench.utils.yamlfile import yaml_problem
 
     command = f"racebench leaderboard {args.leaderboard_command}"
     try:
@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"{len(checks)} cells verified (Fisher exact, α = 0.001 each; lap times within 0.2 s + 4 SE; "
                   "deterministic built-ins episode by episode)")  # fmt: skip
         elif args.leaderboard_command == "sign":
-            from racebench.leaderboard.seeds import salt_from_env
+            from racebench.evaluation.seeds import salt_from_env
             from racebench.leaderboard.signing import check_verified, sign_entry
 
             if args.episodes < 1:

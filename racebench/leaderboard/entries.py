@@ -10,7 +10,7 @@ policy for all three (``all``). Each policy is one line of ``policies``::
 the maintainers verify), ``records`` the result folders of its evaluation records, and optional ``steps`` and
 ``wall_clock_s`` its training budget (else read from ``summary.json`` beside the policy). Paths are relative to the
 repository root, two levels above the leaderboard folder. Every record must be valid
-(:func:`racebench.records.read_record`) and of exactly that policy and the current env version; a new entry's
+(:func:`racebench.evaluation.records.read_record`) and of exactly that policy and the current env version; a new entry's
 records must also come from committed code (``git_dirty: false``).
 
 A policy is judged on its **own** track: the track's main id (and its density and gate-shift ids where it has
@@ -39,19 +39,15 @@ from typing import Any
 
 import yaml
 
-from racebench.agents import (
-    BUILTIN_AGENTS,
-    BUILTIN_PRIVILEGED,
-    AgentLoadError,
-    VecNormalizeChoiceError,
-    builtin_identity,
-    policy_identity,
-)
-from racebench.evaluation import SUITES, TRACK_ORDER, split_env_id
-from racebench.records import RECORDS_FILE, has_records, name_of, read_folder
-from racebench.registration import ENV_VERSION
-from racebench.statistics import wilson_interval
-from racebench.yamlfile import yaml_problem
+from racebench.agents.base import BUILTIN_AGENTS, BUILTIN_PRIVILEGED, AgentLoadError
+from racebench.agents.trust import VecNormalizeChoiceError, builtin_identity, policy_identity
+from racebench.envs.registration import ENV_VERSION
+from racebench.evaluation.evaluator import Evaluator
+from racebench.evaluation.protocol import SUITES, TRACK_ORDER, split_env_id
+from racebench.evaluation.records import RECORDS_FILE, has_records, name_of, read_folder
+from racebench.evaluation.seeds import seeds_for
+from racebench.evaluation.statistics import wilson_interval
+from racebench.utils.yamlfile import yaml_problem
 
 ENTRY_FILE = "entry.yaml"
 #: Leaderboard-wide settings, beside the entries: the salts' fingerprints and the maintainers' public key.
@@ -458,8 +454,6 @@ def check_seed_prefixes(name: str, records: Sequence[dict[str, Any]], salt: str 
 
     Otherwise a submitter could fly 200 episodes and commit the best 50 (cherry-picking), or drop the crashes.
     """
-    from racebench.leaderboard.seeds import seeds_for
-
     cells: dict[tuple[str, str, str], set[int]] = {}
     for record in records:
         cells.setdefault((record["env_id"], record["seed_set"], record["renderer"]), set()).add(record["seed"])
@@ -556,8 +550,6 @@ def add_entry(
     already used is refused (case-insensitive: it names a folder), and so are records made from uncommitted code
     (:func:`check_clean`). ``entry.yaml`` is written last, so a failed run leaves no entry.
     """
-    from racebench.evaluation import Evaluator
-
     leaderboard = Path(leaderboard)
     root = repo_root(leaderboard)
     if not isinstance(meta, dict):

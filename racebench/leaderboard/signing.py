@@ -26,8 +26,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from racebench.envs.registration import ENV_VERSION
+from racebench.evaluation.evaluator import Evaluator
+from racebench.evaluation.records import read_folder
+from racebench.evaluation.seeds import salt_sha256
 from racebench.leaderboard.entries import Cell, Entry, check_seed_prefixes, file_sha256
-from racebench.registration import ENV_VERSION
 
 VERIFIED_FILE = "verified.json"
 SIGNED_FORMAT = 1
@@ -118,8 +121,6 @@ def build_payload(entry: Entry, private_records: Mapping[str, Sequence[dict[str,
 
     ``private_records``: track key of the entry (``S``, ``Circle``, ``J`` or ``all``) -> that policy's records.
     """
-    from racebench.leaderboard.seeds import salt_sha256
-
     fingerprint = salt_sha256(salt)
     policies = []
     for track, policy in entry.policies.items():
@@ -193,9 +194,6 @@ def sign_entry(
 
     ``private_dir`` must lie outside the repository: private seeds and records are never committed.
     """
-    from racebench.evaluation import Evaluator
-    from racebench.records import read_folder
-
     key = load_private_key(key_path)
     private_dir = Path(private_dir).resolve()
     if private_dir.is_relative_to(entry.root.resolve()):

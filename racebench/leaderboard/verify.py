@@ -3,8 +3,9 @@
 For each cell (env id × seed set) of an entry's records the policy is flown again on the first ``n`` seeds of
 that set (``n`` = the committed count, or fewer with ``--episodes``), and
 
-* the **success count** is tested with :func:`racebench.statistics.counts_consistent` (two-sided Fisher exact
-  test at α = :data:`~racebench.statistics.CONSISTENCY_ALPHA` = 0.001): a faithful claim fails by chance in at
+* the **success count** is tested with :func:`racebench.evaluation.statistics.counts_consistent` (two-sided Fisher exact
+  test at α = :data:`~racebench.evaluation.statistics.CONSISTENCY_ALPHA` = 0.001): a faithful claim fails by chance
+  in at
   most 0.1 % of cells, so an entry of ``c`` cells in at most ``c`` × 0.1 % of verifications (union bound);
 * the **mean lap time** (over successes) of the replay must lie within :func:`lap_tolerance` of the committed
   mean over the same seeds: ``LAP_ABS_TOL_S`` + ``LAP_SE_FACTOR`` standard errors of the difference
@@ -23,11 +24,15 @@ CPUs (docs/evaluation.md, "What is reproducible where"), so the promise is the r
 from __future__ import annotations
 
 import math
+import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from racebench.evaluation.evaluator import Evaluator
+from racebench.evaluation.seeds import salt_from_env, salt_sha256
+from racebench.evaluation.statistics import CONSISTENCY_ALPHA, counts_consistent
 from racebench.leaderboard.entries import (
     Cell,
     Entry,
@@ -37,8 +42,6 @@ from racebench.leaderboard.entries import (
     check_seed_prefixes,
     summarize_cells,
 )
-from racebench.leaderboard.seeds import salt_from_env, salt_sha256
-from racebench.statistics import CONSISTENCY_ALPHA, counts_consistent
 
 LAP_ABS_TOL_S = 0.2
 LAP_SE_FACTOR = 4.0
@@ -203,8 +206,6 @@ def verify_entry(
     Private-seed cells need the salt (``salt`` or ``RACEBENCH_PRIVATE_SALT``) whose hash their records carry.
     ``fresh`` discards the replays of an earlier verification first (else they are reused).
     """
-    import shutil
-
     if episodes is not None and episodes < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
     if fresh:
@@ -220,8 +221,6 @@ def _verify_policy(
     workers: int, salt: str | None,
 ) -> list[CellCheck]:  # fmt: skip
     """:func:`verify_entry` for one policy of the entry (its records, flown again into ``<out>/<entry>/<track>``)."""
-    from racebench.evaluation import Evaluator
-
     label = f"{entry.name}/{track}"
     spec = policy.builtin or _spec_at(policy.policy, entry.root)
     groups: dict[tuple[str, str | None, str], list[dict[str, Any]]] = {}
