@@ -154,3 +154,17 @@ def test_paper_tables_command_writes_into_out(tmp_path: Path, capsys: pytest.Cap
     assert (tmp_path / "table_ii.md").is_file() and "wrote" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="racebench paper-tables: .* is not a folder"):
         main(["paper-tables", "--root", str(tmp_path / "nowhere"), "--out", str(tmp_path)])
+
+
+def test_final_training_success_pools_the_last_window_by_episodes() -> None:
+    """One rollout's rate is a few episodes: the final success pools the rows of the last 200k steps by episodes."""
+    from racebench.reporting.paper import FINAL_WINDOW_STEPS, final_training_success
+
+    step = FINAL_WINDOW_STEPS // 4
+    progress = pd.DataFrame({
+        "timesteps": [step * k for k in range(1, 9)],
+        "episodes": [10, 20, 30, 40, 50, 80, 110, 111],  # the last four rows: 10, 30, 30, 1 episodes
+        "success_rate": [0.0, 0.0, 0.0, 0.0, 1.0, 0.5, 0.5, 0.0],
+    })  # fmt: skip
+    assert final_training_success(progress) == pytest.approx((10 * 1.0 + 30 * 0.5 + 30 * 0.5 + 1 * 0.0) / 71)
+    assert final_training_success(progress.iloc[:0]) is None

@@ -397,16 +397,34 @@ def claims_markdown(claims: list[Claim], budget_note: str) -> str:
     return "\n".join(lines + ["", budget_note, ""])
 
 
+#: The window of a run's final training success: one rollout's rate is a handful of episodes (a run's last row
+#: can read 0 % between rows of 100 %), so the rate is pooled over the episodes of its last 200k steps.
+FINAL_WINDOW_STEPS = 200_000
+
+
+def final_training_success(progress: pd.DataFrame) -> float | None:
+    """Training success over the last :data:`FINAL_WINDOW_STEPS` steps of ``progress.csv``: each row's rate
+    weighted by the episodes it ended (``episodes`` is cumulative); None without rows."""
+    rows = progress.dropna(subset=["success_rate"])
+    if rows.empty:
+        return None
+    ended = rows["episodes"].diff().fillna(rows["episodes"].iloc[0]).clip(lower=0)
+    window = rows["timesteps"] > rows["timesteps"].iloc[-1] - FINAL_WINDOW_STEPS
+    weights, rates = ended[window], rows["success_rate"][window]
+    return float(rates.mean()) if weights.sum() == 0 else float((rates * weights).sum() / weights.sum())
+
+
 def budget_note(root: Path, campaign: Path = CAMPAIGN) -> str:
-    """Where the budget is the likely reason: each campaign run's final curriculum level and last training success."""
+    """Where the budget is the likely reason: each campaign run's final curriculum level and its training success
+    over the last :data:`FINAL_WINDOW_STEPS` steps."""
     rows = []
     for summary_path in sorted((root / campaign).glob("*-seed*/summary.json")):
         summary = json.loads(summary_path.read_text())
         progress = summary_path.parent / "progress.csv"
-        last = pd.read_csv(progress)["success_rate"].dropna() if progress.is_file() else pd.Series(dtype=float)
+        final = final_training_success(pd.read_csv(progress)) if progress.is_file() else None
         rows.append(
-            f"{summary_path.parent.name}: level {summary.get('level')}, last training success "
-            + ("–" if last.empty else f"{100 * float(last.iloc[-1]):.0f} %")
+            f"{summary_path.parent.name}: level {summary.get('level')}, training success over its last "
+            f"{FINAL_WINDOW_STEPS / 1e3:.0f}k steps " + ("–" if final is None else f"{100 * final:.0f} %")
         )
     share = 100 * BUDGET_STEPS / PAPER_STEPS
     head = (
