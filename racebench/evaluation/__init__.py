@@ -14,8 +14,7 @@ The names of the former module ``racebench.evaluation`` are re-exported here.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from racebench.utils.lazy import lazy_exports
 
 #: Submodule -> the names this package re-exports from it, imported on first use (PEP 562) so that importing one
 #: submodule does not load its siblings.
@@ -60,17 +59,4 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "rollout": ("BatchAgent", "env_error_result", "run_episode", "run_lockstep"),
     "statistics": ("paired_outcomes", "wilson_interval"),
 }
-_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _WHERE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -14,8 +14,7 @@ helpers from :mod:`racebench.training.student`). No submodule is named like a fu
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from racebench.utils.lazy import lazy_exports
 
 #: Submodule -> the names this package re-exports from it, imported on first use (PEP 562) so that importing one
 #: submodule does not load its siblings.
@@ -85,18 +84,4 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "student_output",
     ),
 }
-_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _WHERE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    module = _WHERE[name] if _WHERE[name].startswith(".") else f".{_WHERE[name]}"
-    value = getattr(importlib.import_module(module, __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
