@@ -246,3 +246,34 @@ def test_builtin_and_committed_hashes_are_unchanged() -> None:
     ensemble = ROOT / "scripts/ensemble_agent.py"
     assert python_agent_modules(ensemble) == {}  # racebench, numpy and the standard library only
     assert policy_identity(f"{ensemble}:EnsembleAgent").sha256 == sha256_file(ensemble)
+
+
+def test_a_checkpoint_whose_schedules_cannot_be_unpickled_loads_without_a_warning(tmp_path: Path) -> None:
+    """cloudpickle's pickles of the training schedules do not load across its versions (a zip written under
+    cloudpickle 3 and read under 2 warns "Can't get attribute '_function_setstate'"); flying never uses them."""
+    import warnings
+    import zipfile
+
+    model = PPO("MlpPolicy", gym.make(LEVEL1, obs_mode="state"), n_steps=32, batch_size=32, seed=0, device="cpu",
+                learning_rate=lambda progress: 3e-4 * progress)  # fmt: skip
+    model.save(tmp_path / "written.zip")
+    with zipfile.ZipFile(tmp_path / "written.zip") as source:
+        members = {name: source.read(name) for name in source.namelist()}
+    data = json.loads(members["data"])
+    for key in ("learning_rate", "lr_schedule", "clip_range"):  # as another cloudpickle version would see them
+        data[key][":serialized:"] = "gARjYnVpbHRpbnMKbm9fc3VjaF9uYW1lCnEALg=="  # builtins.no_such_name
+    members["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(tmp_path / "unreadable.zip", "w") as target:
+        for name, content in members.items():
+            target.writestr(name, content)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.warns(UserWarning, match="Could not deserialize object lr_schedule"):
+            PPO.load(tmp_path / "unreadable.zip", device="cpu")  # what SB3 alone does with it
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        agent = load_agent(str(tmp_path / "unreadable.zip"), trust_code=True)
+    assert not [w for w in caught if "deserialize" in str(w.message)], [str(w.message) for w in caught]
+    obs = observations(3)
+    agent.start(len(obs))
+    np.testing.assert_allclose(agent.act_batch(list(obs)), model.predict(obs, deterministic=True)[0], atol=1e-6)

@@ -79,6 +79,21 @@ from racebench.agents.trust import (
 from racebench.envs.env import depth_to_uint8
 
 
+def _unused_schedule(_progress_remaining: float) -> float:
+    return 0.0
+
+
+# SB3 pickles a model's training schedules with cloudpickle, whose pickles do not load across its major versions
+# (a zip written under cloudpickle 3 warns "Can't get attribute '_function_setstate'" under 2). Flying a policy
+# never uses them and a resumed run rebuilds them from its config (racebench.training.ppo.restore_schedules), so
+# they are not unpickled at all: SB3's documented custom_objects replaces them.
+UNREAD_SCHEDULES: dict[str, Any] = {
+    "learning_rate": 0.0,
+    "lr_schedule": _unused_schedule,
+    "clip_range": _unused_schedule,
+}
+
+
 class SB3Agent:
     """A stable-baselines3 or sb3-contrib checkpoint, acting deterministically.
 
@@ -139,7 +154,8 @@ class SB3Agent:
 
         raw = path.read_bytes() if raw is None else raw
         try:
-            data, _, _ = load_from_zip_file(io.BytesIO(raw), device=device, print_system_info=False)
+            data, _, _ = load_from_zip_file(io.BytesIO(raw), device=device, custom_objects=UNREAD_SCHEDULES,
+                                            print_system_info=False)  # fmt: skip
         except Exception as exc:  # noqa: BLE001 - SB3 raises many kinds on a damaged archive
             raise AgentLoadError(f"SB3 checkpoint {str(path)!r} could not be read: {exc}") from exc
         if data is None:  # e.g. a zip cut short after a nested torch archive, which then opens as that one
@@ -156,7 +172,7 @@ class SB3Agent:
         errors = []
         for algorithm in candidates:
             try:
-                return algorithm.load(io.BytesIO(raw), device=device)
+                return algorithm.load(io.BytesIO(raw), device=device, custom_objects=UNREAD_SCHEDULES)
             except Exception as exc:  # noqa: BLE001 - try the next algorithm class
                 errors.append(f"{algorithm.__name__}: {exc}")
         raise AgentLoadError(f"SB3 checkpoint {str(path)!r} could not be loaded by any algorithm ({'; '.join(errors)})")

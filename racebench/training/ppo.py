@@ -295,9 +295,9 @@ def _restore_reward_stats(env: VecEnv, stats: tuple[Path, bytes] | None) -> None
 def restore_schedules(model: Any, config: TrainConfig) -> None:
     """Rebuild a resumed model's learning-rate and clip-range schedules from its config.
 
-    SB3 pickles them with cloudpickle; a checkpoint written under another cloudpickle version (e.g. a venv without
-    Ray's pin) loads without them, SB3 only warns, and training would go on at the class defaults (PPO's constant
-    3e-4). The config is the source of truth for both.
+    SB3 pickles them with cloudpickle, whose pickles do not load across its versions (e.g. a venv without Ray's
+    pin), so the loader does not read them (:data:`racebench.agents.loading.UNREAD_SCHEDULES`) and training would
+    otherwise go on at a learning rate of 0. The config is the source of truth for both.
     """
     model.learning_rate = linear_schedule(*config.learning_rate)
     model._setup_lr_schedule()
