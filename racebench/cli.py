@@ -179,7 +179,10 @@ def _export_onnx(args: argparse.Namespace) -> int:
     from racebench.agents.base import AgentLoadError
     from racebench.agents.export import export_onnx
     from racebench.agents.loading import SB3Agent
+    from racebench.envs.registration import ENV_IDS
 
+    if args.check_env is not None and args.check_env not in ENV_IDS:
+        raise SystemExit(f"racebench export-onnx: --check-env {args.check_env!r} is not a racebench id")
     try:
         agent = SB3Agent(args.checkpoint, trust_code=args.trust_code, vecnormalize=_vecnormalize(args))
         # The checkpoint's statistics change its actions: they go into the graph.
@@ -187,6 +190,17 @@ def _export_onnx(args: argparse.Namespace) -> int:
     except (AgentLoadError, ValueError) as exc:
         raise SystemExit(f"racebench export-onnx: {exc}") from exc
     log.info(f"wrote {out} (sha256 {sha256_file(out)})")
+    if args.check_env is not None:
+        from racebench.agents.export import ONNX_ACTION_TOLERANCE, onnx_action_gap
+        from racebench.evaluation.protocol import EVAL_SEED_BASE
+
+        gap, steps = onnx_action_gap(agent, out, args.check_env, EVAL_SEED_BASE, args.check_steps)
+        where = f"over {steps} steps of {args.check_env} (seed {EVAL_SEED_BASE}, the checkpoint flying)"
+        if not gap <= ONNX_ACTION_TOLERANCE:  # also NaN
+            out.unlink()
+            raise SystemExit(f"racebench export-onnx: the ONNX actions differ from the checkpoint's by up to {gap:.3g} "
+                             f"{where}, above {ONNX_ACTION_TOLERANCE:g}: {out} removed")  # fmt: skip
+        log.info(f"checked: max |ONNX action - checkpoint action| = {gap:.2g} {where}")
     return 0
 
 

@@ -266,6 +266,12 @@ def build_parser() -> argparse.ArgumentParser:
     p_onnx.add_argument("checkpoint", help="SB3 / sb3-contrib .zip (PPO/A2C feed-forward or racebench GRU policy)")
     p_onnx.add_argument("--out", default=None, help="ONNX path (default: beside the checkpoint, .onnx)")
     p_onnx.add_argument("--trust-code", action="store_true", help="allow a checkpoint outside the shipped ones")
+    p_onnx.add_argument(
+        "--check-env", default=None, metavar="ID",
+        help="then fly the checkpoint on ID's first public seed and compare the ONNX actions step by step "
+        "(an error, and no file, above 1e-4)",
+    )  # fmt: skip
+    p_onnx.add_argument("--check-steps", type=int, default=60, help="steps compared by --check-env (default 60)")
     _add_vecnormalize_options(p_onnx)
 
     p_export = sub.add_parser(

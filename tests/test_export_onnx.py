@@ -139,3 +139,26 @@ def test_what_cannot_be_exported_faithfully_is_refused_by_name(tmp_path: Path) -
         assert "\n" not in str(caught.value)
         assert not (tmp_path / "refused.onnx").exists()
     env.close()
+
+
+def test_check_env_compares_the_actions_on_the_checkpoints_own_flight(tmp_path: Path, capsys, monkeypatch) -> None:
+    """``--check-env``: the committed GRU checkpoint and its export agree on a real flight; a graph that does not
+    (its actions shifted) is an error naming the gap, and its file is removed."""
+    from racebench.agents.loading import OnnxAgent as Loaded
+
+    checkpoint = ROOT / "baselines/checkpoints/vision-ppo-S/vision-ppo-S.zip"
+    out = tmp_path / "checked.onnx"
+    argv = ["export-onnx", str(checkpoint), "--out", str(out), "--check-env", "RaceObs-S-v0", "--check-steps", "20"]
+    assert cli.main(argv) == 0
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("checked:")]
+    assert len(line) == 1 and "over 20 steps of RaceObs-S-v0 (seed 1000000" in line[0]
+    assert float(line[0].split("= ")[1].split()[0]) < 1e-4 and out.is_file()
+
+    act = Loaded.act
+    monkeypatch.setattr(Loaded, "act", lambda self, obs: act(self, obs) + np.float32(0.01))
+    with pytest.raises(SystemExit, match=r"ONNX actions differ from the checkpoint's by up to 0\.01 over 20 steps"):
+        cli.main(argv)
+    assert not out.exists()
+    with pytest.raises(SystemExit, match=r"--check-env 'RaceObs-X-v0' is not a racebench id"):
+        cli.main([*argv[:4], "--check-env", "RaceObs-X-v0"])
+    assert not out.exists()  # refused before anything is written

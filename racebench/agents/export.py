@@ -170,3 +170,37 @@ def export_onnx(model: Any, path: str | Path, normalizer: Any = None) -> Path:
         dynamo=False,
     )
     return path
+
+
+#: Largest action difference :func:`onnx_action_gap` accepts: float32 graph arithmetic differs from torch's in the
+#: last bits (about 1e-6 on the committed GRU policies), a wrong graph by orders of magnitude more.
+ONNX_ACTION_TOLERANCE = 1e-4
+
+
+def onnx_action_gap(agent: Any, onnx_path: str | Path, env_id: str, seed: int, steps: int = 60) -> tuple[float, int]:
+    """Fly ``agent`` (the checkpoint's :class:`~racebench.agents.loading.SB3Agent`) on one episode of ``env_id``
+    and feed the ONNX export the same observations: the largest |action difference| and the steps compared.
+
+    Real observations of the checkpoint's own flight, the recurrent state carried by each policy as it flies, up
+    to ``steps`` steps or the episode's end.
+    """
+    import gymnasium as gym
+
+    from racebench.agents.loading import OnnxAgent
+
+    onnx = OnnxAgent(onnx_path)
+    env = gym.make(env_id, obs_mode=obs_mode_of(agent.model.observation_space))
+    try:
+        obs, _ = env.reset(seed=seed)
+        agent.reset(env, seed)
+        onnx.reset(env, seed)
+        gap, flown, ended = 0.0, 0, False
+        while flown < steps and not ended:
+            action = agent.act(obs)
+            difference = float(np.max(np.abs(action - onnx.act(obs))))
+            gap = max(gap, difference if np.isfinite(difference) else np.inf)  # a NaN action is no match
+            obs, _, terminated, truncated, _ = env.step(action)
+            flown, ended = flown + 1, terminated or truncated
+    finally:
+        env.close()
+    return gap, flown
