@@ -2,21 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 from pathlib import Path
 
 import pytest
+from scripts_loader import load_script
 
-ROOT = Path(__file__).parents[1]
 RUN = "baselines/experiments/campaign-4m/vision-ppo-Circle-seed0"
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("campaign_state", ROOT / "scripts" / "campaign_state.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def git(repo: Path, *args: str) -> str:
@@ -51,7 +43,7 @@ def write_run(root: Path, checkpoints: list[int]) -> Path:
 
 
 def test_save_keeps_only_the_newest_checkpoint_and_restore_rebuilds_the_run(repo: Path, tmp_path: Path) -> None:
-    script = load_script()
+    script = load_script("campaign_state")
     clone = tmp_path / "clone"
     run = write_run(clone, [500_000, 1_000_000])
     commit = script.save(repo, clone, [run])
@@ -78,7 +70,7 @@ def test_save_keeps_only_the_newest_checkpoint_and_restore_rebuilds_the_run(repo
 
 
 def test_a_new_save_replaces_the_old_state_which_becomes_unreachable(repo: Path, tmp_path: Path) -> None:
-    script = load_script()
+    script = load_script("campaign_state")
     clone = tmp_path / "clone"
     run = write_run(clone, [500_000])
     first = script.save(repo, clone, [run])
@@ -91,7 +83,7 @@ def test_a_new_save_replaces_the_old_state_which_becomes_unreachable(repo: Path,
 
 
 def test_restore_refuses_to_overwrite_other_content(repo: Path, tmp_path: Path, capsys) -> None:
-    script = load_script()
+    script = load_script("campaign_state")
     clone = tmp_path / "clone"
     script.save(repo, clone, [write_run(clone, [500_000])])
     other = tmp_path / "other"
@@ -105,7 +97,7 @@ def test_restore_refuses_to_overwrite_other_content(repo: Path, tmp_path: Path, 
 
 
 def test_a_run_folder_without_a_checkpoint_is_refused_by_name(repo: Path, tmp_path: Path, capsys) -> None:
-    script = load_script()
+    script = load_script("campaign_state")
     run = tmp_path / "clone" / RUN
     run.mkdir(parents=True)
     assert script.main(["save", "--repo", str(repo), "--root", str(tmp_path / "clone"), str(run)]) == 1

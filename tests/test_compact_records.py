@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from scripts_loader import load_script
 
 from racebench.evaluation import Evaluator, load_records
 from racebench.evaluation.records import (
@@ -23,13 +23,6 @@ from racebench.evaluation.records import (
 
 ROOT = Path(__file__).parents[1]
 ENV = "RaceObs-S-Level1-v0"
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("compact_records", ROOT / "scripts" / "compact_records.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def to_legacy(folder: Path) -> None:
@@ -71,7 +64,7 @@ def test_every_record_and_trajectory_round_trips(legacy_tree: Path, tmp_path: Pa
     tables = {f: load_records(f) for f in folders}  # the legacy layout is read as it is
     flights = read_trajectories(folders[0])
     assert [len(b) for b in before.values()] == [3, 4] and len(flights) == 3
-    script = load_script()
+    script = load_script("compact_records")
     assert script.main([str(tree / "results"), str(tree / "exp")]) == 0
     assert "2 folders converted: 7 records, 3 trajectories" in capsys.readouterr().out
     for folder in folders:
@@ -103,5 +96,5 @@ def test_an_invalid_legacy_record_stops_the_conversion(legacy_tree: Path, tmp_pa
     record = json.loads(path.read_text())
     path.write_text(json.dumps({**record, "success": True}))  # edited, digest not recomputed
     with pytest.raises(SystemExit, match=rf"^compact_records: {path}: digest does not match"):
-        load_script().main([str(tree)])
+        load_script("compact_records").main([str(tree)])
     assert path.is_file() and not (tree / "hover" / RECORDS_FILE).exists()  # nothing converted, nothing lost

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+from scripts_loader import load_script
 
 from racebench.agents import BUILTIN_VERSIONS, SB3Agent
 from racebench.training.dagger import DaggerConfig, Dataset, distill, load_resume_state
@@ -707,9 +707,7 @@ def test_the_run_keeps_its_last_students_and_checkpoints_the_best_on_validation_
     assert not torch.equal(a[key], b[key])  # two different students were kept
 
     # scripts/average_students.py: the last 2 are the run's own average, the last 1 its last student.
-    spec = importlib.util.spec_from_file_location("average_students", ROOT / "scripts" / "average_students.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("average_students")
     # Three kept students (it000 a copy of it002, so the last 2 differ from all 3): the last K of them, in order.
     import shutil
 

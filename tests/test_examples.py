@@ -5,7 +5,6 @@ documentation."""
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import json
 import re
 import sys
@@ -15,6 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from scripts_loader import load_script
 
 ROOT = Path(__file__).parents[1]
 
@@ -43,11 +43,7 @@ def test_stock_sb3_snippet_builds_a_cnn(tmp_path, monkeypatch) -> None:
 
 
 def load_cleanrl():
-    spec = importlib.util.spec_from_file_location("cleanrl_ppo", ROOT / "scripts" / "cleanrl_ppo.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve the module's annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
+    return load_script("cleanrl_ppo")
 
 
 def test_cleanrl_ppo_trains_on_a_level1_id(tmp_path) -> None:
@@ -141,9 +137,7 @@ def test_every_relative_link_resolves(page: str) -> None:
 def test_the_ab_report_reads_run_folders_and_applies_the_stated_rule(tmp_path) -> None:
     """scripts/ab_report.py: rows from a sweep's run folders; the decision only with 3 finished runs per arm."""
 
-    spec = importlib.util.spec_from_file_location("ab_report", ROOT / "scripts" / "ab_report.py")
-    report = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(report)
+    report = load_script("ab_report")
 
     def run(name: str, to_l3: int, successes: int, finished: bool = True) -> None:
         folder = tmp_path / name
@@ -186,9 +180,7 @@ def test_gate_crossings_finds_where_a_policy_crosses_each_gate(tmp_path, monkeyp
     out = tmp_path / "eval"
     assert cli.main(["-q", "evaluate", "--agent", "planner-fast", "--envs", "RaceObs-S-v0", "--episodes", "2",
                      "--out", str(out), "--save-trajectories"]) == 0  # fmt: skip
-    spec = importlib.util.spec_from_file_location("gate_crossings", ROOT / "scripts" / "gate_crossings.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("gate_crossings")
     monkeypatch.setattr(sys, "argv", ["gate_crossings.py", str(out), "--env", "RaceObs-S-v0"])
     capsys.readouterr()
     script.main()
@@ -203,9 +195,7 @@ def test_gate_crossings_finds_where_a_policy_crosses_each_gate(tmp_path, monkeyp
 
 
 def test_paired_outcomes_counts_the_discordant_pairs_and_tests_them_exactly(tmp_path, monkeypatch, capsys) -> None:
-    spec = importlib.util.spec_from_file_location("paired_outcomes", ROOT / "scripts" / "paired_outcomes.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("paired_outcomes")
     # Seeds 0-9 on one id: A finishes 0-5, B finishes 2-9; so 2 only by A (0, 1), 4 only by B (6-9).
     for name, wins in (("a", range(0, 6)), ("b", range(2, 10))):
         (tmp_path / name).mkdir()
@@ -224,9 +214,7 @@ def test_paired_outcomes_counts_the_discordant_pairs_and_tests_them_exactly(tmp_
 
 
 def test_failure_overlap_finds_failures_piled_on_the_same_scenes(tmp_path, monkeypatch, capsys) -> None:
-    spec = importlib.util.spec_from_file_location("failure_overlap", ROOT / "scripts" / "failure_overlap.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("failure_overlap")
     # Three agents, 20 scenes: all fail scenes 0-3 (so each finishes 16 of 20), the rest they all finish.
     for name in ("a", "b", "c"):
         (tmp_path / name).mkdir()
@@ -249,9 +237,7 @@ def test_failure_overlap_finds_failures_piled_on_the_same_scenes(tmp_path, monke
 
 
 def test_seeds_report_takes_the_mean_and_spread_of_validated_records(tmp_path, monkeypatch, capsys) -> None:
-    spec = importlib.util.spec_from_file_location("seeds_report", ROOT / "scripts" / "seeds_report.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("seeds_report")
     # Three committed 100-episode evaluations on S stand in for three seeds: 76, 69 and 62 laps finished.
     folders = [ROOT / "baselines/experiments" / name / "eval"
                for name in ("distill-wide-berth", "distill-stateless-teacher", "distill-teacher-v3")]  # fmt: skip
@@ -275,9 +261,7 @@ def test_crash_visibility_counts_the_hit_obstacles_pixels_and_replays_crashes(tm
     from racebench.evaluation import Evaluator
     from racebench.sim.raycast import BatchDepthRenderer
 
-    spec = importlib.util.spec_from_file_location("crash_visibility", ROOT / "scripts" / "crash_visibility.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("crash_visibility")
     env = gym.make("RaceObs-S-v0")
     env.reset(seed=1_000_000)
     race = env.unwrapped
@@ -308,9 +292,7 @@ def test_crash_geometry_finds_an_obstacle_blind_agent_unmoved_by_what_it_hits(tm
     from racebench.evaluation import Evaluator
 
     monkeypatch.syspath_prepend(str(ROOT / "scripts"))  # crash_geometry imports crash_visibility's replay
-    spec = importlib.util.spec_from_file_location("crash_geometry", ROOT / "scripts" / "crash_geometry.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("crash_geometry")
     Evaluator("follow", ["RaceObs-S-v0"], episodes=4, out_dir=tmp_path / "eval").run(progress=False)
     argv = ["crash_geometry", str(tmp_path / "eval"), "--agent", "follow", "--successes", "1", "--without-obstacle"]
     monkeypatch.setattr("sys.argv", argv)
@@ -332,9 +314,7 @@ def test_ensemble_agent_averages_its_members_actions_and_pins_them(tmp_path, mon
 
     from racebench.agents import AgentLoadError, SB3Agent
 
-    spec = importlib.util.spec_from_file_location("ensemble_agent", ROOT / "scripts" / "ensemble_agent.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("ensemble_agent")
     paths = [str(ROOT / "baselines" / "checkpoints" / f"vision-distill-{t}" / f"vision-distill-{t}.zip") for t in "SJ"]
     digests = [hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in paths]
     env = gym.make("RaceObs-S-v0")
@@ -368,9 +348,7 @@ def test_ensemble_agent_averages_its_members_actions_and_pins_them(tmp_path, mon
 
 
 def test_data_scaling_solves_the_logistic_fit_for_the_steps_to_a_target(tmp_path, monkeypatch) -> None:
-    spec = importlib.util.spec_from_file_location("data_scaling", ROOT / "scripts" / "data_scaling.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("data_scaling")
     from scipy.special import expit, logit
 
     # 10 scenes: 3 finished at 1,000 steps, 8 at 4,000 (two doublings). Two points: the fit goes through both

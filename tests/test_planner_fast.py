@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import math
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
+from scripts_loader import load_script
 
 from racebench.agents import BUILTIN_PRIVILEGED, load_agent
 from racebench.agents.planner import (
@@ -273,10 +272,7 @@ def test_a_thrust_budget_below_gravity_is_refused_at_planning(s_env):
 
 
 def test_planner_fast_sweep_settings_parse_none_only_where_a_stage_can_be_off():
-    path = Path(__file__).resolve().parents[1] / "scripts" / "planner_fast_sweep.py"
-    spec = importlib.util.spec_from_file_location("planner_fast_sweep", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("planner_fast_sweep")
     parse_settings = module.parse_settings
 
     assert parse_settings(["braking_jerk=none,60"]) == {"braking_jerk": [None, 60.0]}
