@@ -150,6 +150,7 @@ def _scene(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     """``racebench train``: train a config (PPO or DAgger)."""
+    from racebench.training.callbacks import TrainingInterrupted, checkpoint_on_sigterm
     from racebench.training.dagger.config import DaggerConfig
     from racebench.training.models import resolve_device
     from racebench.training.run import load_config, run_training
@@ -164,11 +165,12 @@ def _train(args: argparse.Namespace) -> int:
             config.update_threads = args.num_processes  # as many learner threads as cores it was given
         config.validate(f"{args.config} with the command-line overrides")
         resolve_device(args.device)
-        result = run_training(
-            config, args.track, args.steps, args.seed, args.out, args.resume,
-            eval_episodes=args.eval_episodes, device=args.device, trust_code=args.trust_code,
-        )  # fmt: skip
-    except (OSError, ValueError) as exc:
+        with checkpoint_on_sigterm():  # kill -TERM: a checkpoint at the next rollout end, then a one-line exit
+            result = run_training(
+                config, args.track, args.steps, args.seed, args.out, args.resume,
+                eval_episodes=args.eval_episodes, device=args.device, trust_code=args.trust_code,
+            )  # fmt: skip
+    except (OSError, ValueError, TrainingInterrupted) as exc:
         raise SystemExit(f"racebench train: {exc}") from exc
     print(json.dumps(result, indent=2))
     return 0
@@ -381,6 +383,7 @@ def _ray_options(args: argparse.Namespace, **options: Any) -> Any:
 def _sweep(args: argparse.Namespace) -> int:
     """``racebench sweep``: run the grid, print one line per run; non-zero exit if any run failed."""
     from racebench.evaluation.ray_backend import require_ray
+    from racebench.training.callbacks import checkpoint_on_sigterm
     from racebench.training.sweep import load_sweep, run_sweep
 
     try:
@@ -400,8 +403,13 @@ def _sweep(args: argparse.Namespace) -> int:
         rate = "" if row["success_rate"] is None else f", success rate {row['success_rate']:.2f}"
         print(f"{row['run']}: {row['status']} ({row['timesteps']} steps{rate})", flush=True)
 
-    rows = run_sweep(sweep, args.backend, options, on_row=show, max_runs=args.max_runs)
+    with checkpoint_on_sigterm():  # local runs: kill -TERM checkpoints the run in progress and ends the sweep
+        rows = run_sweep(sweep, args.backend, options, on_row=show, max_runs=args.max_runs)
     print(f"wrote {sweep.out / 'sweep.csv'}")
+    stopped = [row["run"] for row in rows if row["status"].startswith("interrupted")]
+    if stopped:
+        raise SystemExit(f"racebench sweep: stopped on request during {stopped[0]} (checkpointed); "
+                         "the same command resumes it")  # fmt: skip
     failed = [row["run"] for row in rows if row["status"].startswith("failed")]
     if failed:
         raise SystemExit(f"racebench sweep: {len(failed)} of {len(rows)} runs failed: {', '.join(failed)}")

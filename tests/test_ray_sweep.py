@@ -472,3 +472,64 @@ def test_the_shipped_teacher_student_sweep_chains_each_student_to_its_fine_tunin
 def test_a_failed_run_fails_its_whole_chain_on_ray(ray_cluster, tmp_path: Path) -> None:
     rows = run_sweep(load_sweep(write_failing_chain(tmp_path)), backend="ray", ray_options=RayOptions())
     assert "is not a file" in rows[0]["status"] and [r["status"] for r in rows[1:]] == FAILED_CHAIN
+
+
+def test_sigterm_checkpoints_the_run_in_progress_ends_the_sweep_and_the_same_command_resumes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``kill -TERM`` during training: a checkpoint at the end of the rollout being collected, no summary, no further
+    run; the SIGTERM handler is the old one again afterwards; re-running the command resumes from that checkpoint."""
+    from racebench.training import callbacks
+
+    path = write_sweep(tmp_path, steps=384, checkpoint_every=10**6)  # no periodic checkpoint: only the stop's
+    out = tmp_path / "out"
+    rollout_end, sent = callbacks.ProgressCSVCallback._on_rollout_end, []
+
+    def end_then_sigterm(self) -> None:
+        rollout_end(self)
+        if not sent:  # after the first rollout: the stop comes at the end of the second, at 256 steps
+            sent.append(True)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(callbacks.ProgressCSVCallback, "_on_rollout_end", end_then_sigterm)
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit, match=r"stopped on request during tiny-S-seed0 \(checkpointed\); the same command"):
+        main(["sweep", str(path)])
+    assert signal.getsignal(signal.SIGTERM) is before and not callbacks.STOP_REQUESTED.is_set()
+    statuses = pd.read_csv(out / "sweep.csv")["status"].tolist()
+    assert statuses[0].startswith("interrupted: ") and "stopped on request at 256 steps" in statuses[0]
+    assert statuses[1] == "not started" and not (out / "tiny-J-seed0").exists()
+    run = out / "tiny-S-seed0"
+    assert latest_checkpoint(run, "tiny")[1] == 256 and not (run / "summary.json").exists()
+    assert "checkpoints/tiny_256_steps.zip" in json.loads((run / "written.json").read_text())  # trusted on resume
+
+    monkeypatch.setattr(callbacks.ProgressCSVCallback, "_on_rollout_end", rollout_end)
+    assert main(["sweep", str(path)]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["resumed_at"] == 256 and summary["timesteps"] == 384
+    assert json.loads((out / "tiny-J-seed0" / "summary.json").read_text())["timesteps"] == 384
+
+
+def test_sigterm_outside_training_or_a_second_time_does_what_it_did_before() -> None:
+    """Under ``checkpoint_on_sigterm`` the signal only asks a training run to stop; otherwise (an evaluation, or a
+    second signal while the first is pending) the previous handler gets it, as without the context."""
+    from racebench.training import callbacks
+
+    received: list[int] = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: received.append(signum))
+    try:
+        with callbacks.checkpoint_on_sigterm():
+            os.kill(os.getpid(), signal.SIGTERM)  # no training under way
+            assert received == [signal.SIGTERM] and not callbacks.STOP_REQUESTED.is_set()
+        with callbacks.checkpoint_on_sigterm():
+            callbacks._TRAINING.set()
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)
+                assert callbacks.STOP_REQUESTED.is_set() and len(received) == 1  # asked to stop, not passed on
+                os.kill(os.getpid(), signal.SIGTERM)
+                assert len(received) == 2  # the second one is not swallowed
+            finally:
+                callbacks._TRAINING.clear()
+        assert not callbacks.STOP_REQUESTED.is_set()
+    finally:
+        signal.signal(signal.SIGTERM, previous)

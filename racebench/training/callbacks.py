@@ -7,8 +7,12 @@ from __future__ import annotations
 import csv
 import json
 import os
+import signal
+import threading
 import time
 from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -217,23 +221,74 @@ class ProgressCSVCallback(BaseCallback):
         self.returns, self.successes = [], []
 
 
+#: Set while a stop has been asked for (:func:`checkpoint_on_sigterm`): a PPO run then stops at its next rollout end.
+STOP_REQUESTED = threading.Event()
+_TRAINING = threading.Event()  # a PPO run's learn() is under way in this process
+
+
+class TrainingInterrupted(RuntimeError):
+    """A run stopped on request (SIGTERM under :func:`checkpoint_on_sigterm`) after saving a checkpoint to resume."""
+
+
+@contextmanager
+def checkpoint_on_sigterm() -> Iterator[None]:
+    """While active, SIGTERM to this process stops a PPO run cleanly: at the end of the rollout it is collecting it
+    saves a periodic-style checkpoint (the one a resume picks up) and ``train`` raises :class:`TrainingInterrupted`.
+    Outside training (an evaluation, a DAgger run) and on a second SIGTERM, the signal does what it did before.
+
+    For the command line (``racebench train`` and ``sweep``): a session that must end sends ``kill -TERM <pid>``
+    and loses no steps. Send it to the racebench process alone: its env worker processes would die of it.
+    """
+    if threading.current_thread() is not threading.main_thread():  # signal handlers live in the main thread
+        yield
+        return
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def handler(signum: int, frame: Any) -> None:
+        if _TRAINING.is_set() and not STOP_REQUESTED.is_set():
+            STOP_REQUESTED.set()
+            return
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+        signal.raise_signal(signal.SIGTERM)
+
+    signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+        STOP_REQUESTED.clear()
+
+
 class AtomicCheckpointCallback(CheckpointCallback):
-    """SB3's ``CheckpointCallback`` whose files each appear whole or not at all.
+    """SB3's ``CheckpointCallback`` whose files each appear whole or not at all, and which also saves and stops
+    the run at the first rollout end after :data:`STOP_REQUESTED` is set (:attr:`interrupted`).
 
     A run killed mid-save (a sweep's lost Ray worker) used to leave a truncated zip behind. Because an SB3
     archive nests torch's own zip files (``policy.pth``), a truncated one can still open as the *inner*
     archive, without the model's data, and the resumed run failed. Each file is written beside its final
     name and renamed into place; the reward statistics come first, so a checkpoint's zip implies its pkl.
     With ``run_dir`` each file's sha256 is recorded in that folder's :data:`~racebench.agents.trust.WRITTEN_FILE` once
-    it is in place, so resuming from it trusts it without ``--trust-code``.
+    it is in place, so resuming from it trusts it without ``--trust-code``. ``rollout_calls``: the steps of one
+    rollout (``n_steps``), where a stop's checkpoint is taken, as the periodic ones are.
     """
 
-    def __init__(self, *args: Any, run_dir: str | Path | None = None, **kwargs: Any) -> None:
+    def __init__(
+        self, *args: Any, run_dir: str | Path | None = None, rollout_calls: int | None = None, **kwargs: Any
+    ) -> None:
         super().__init__(*args, **kwargs)
         self.run_dir = run_dir
+        self.rollout_calls = rollout_calls or self.save_freq
+        self.interrupted: Path | None = None  # the checkpoint a stop on request saved
+
+    def _on_training_start(self) -> None:
+        _TRAINING.set()
+
+    def _on_training_end(self) -> None:
+        _TRAINING.clear()
 
     def _on_step(self) -> bool:
-        if self.n_calls % self.save_freq == 0:
+        stop = STOP_REQUESTED.is_set() and self.n_calls % self.rollout_calls == 0
+        if self.n_calls % self.save_freq == 0 or stop:
             normalizer = self.model.get_vec_normalize_env()
             if self.save_vecnormalize and normalizer is not None:
                 stats = Path(self._checkpoint_path("vecnormalize_", extension="pkl"))
@@ -242,6 +297,9 @@ class AtomicCheckpointCallback(CheckpointCallback):
             checkpoint = Path(self._checkpoint_path(extension="zip"))
             _save_atomically(checkpoint, self.model.save)
             self._record(checkpoint)
+            if stop:
+                self.interrupted = checkpoint
+                return False  # SB3 ends learn() here
         return True
 
     def _record(self, path: Path) -> None:

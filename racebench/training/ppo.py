@@ -53,6 +53,7 @@ from racebench.training.callbacks import (
     StudentBCCallback,
     TeacherBCCallback,
     ThreadsCallback,
+    TrainingInterrupted,
     _read_progress,
 )
 from racebench.training.config import TrainConfig
@@ -167,19 +168,21 @@ def train(
     elif config.bc_coef > 0:  # init_from is the anchor, also when resuming (the run's start, not the resumed weights)
         bc = StudentBCCallback(frozen_initial_policy(model, init_from), config.bc_coef, config.update_threads)
     curriculum.clock = lambda: time.perf_counter() - progress.started  # the run's wall clock, resumes included
+    checkpointer = AtomicCheckpointCallback(
+        # at rollout ends, so a resumed run loses no collected samples
+        max(round(checkpoint_every / (config.n_envs * config.n_steps)), 1) * config.n_steps,
+        str(out / "checkpoints"),
+        config.name,
+        save_vecnormalize=True,
+        run_dir=out,
+        rollout_calls=config.n_steps,  # a stop on request (TrainingInterrupted) saves at the next rollout end
+    )
     callbacks = CallbackList(
         [
             curriculum,
             MultiSceneCallback(config, curriculum),
             progress,
-            AtomicCheckpointCallback(
-                # at rollout ends, so a resumed run loses no collected samples
-                max(round(checkpoint_every / (config.n_envs * config.n_steps)), 1) * config.n_steps,
-                str(out / "checkpoints"),
-                config.name,
-                save_vecnormalize=True,
-                run_dir=out,
-            ),
+            checkpointer,
             ThreadsCallback(config.torch_threads, config.update_threads),
             *([CriticWarmupCallback(config.critic_warmup)] if config.critic_warmup else []),
             *([bc] if bc is not None else []),
@@ -188,6 +191,12 @@ def train(
     started = time.perf_counter()
     model.learn(steps, callback=callbacks, reset_num_timesteps=resume is None, tb_log_name=config.name)
     wall = time.perf_counter() - started
+    if checkpointer.interrupted is not None:  # stopped on request: no final model, no summary (not finished)
+        curriculum.save_state()
+        env.close()
+        raise TrainingInterrupted(
+            f"{out}: stopped on request at {model.num_timesteps} steps; resume from {checkpointer.interrupted}"
+        )
     final = out / f"{config.name}-{track}.zip"
     model.save(final)
     record_written(out, final)

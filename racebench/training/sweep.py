@@ -75,6 +75,7 @@ from racebench.evaluation.protocol import EVAL_SEED_BASE, SUITES, split_env_id
 from racebench.evaluation.ray_backend import RayOptions, connected
 from racebench.reporting.paper import validation_curve
 from racebench.sim.track import BUILTIN_TRACKS
+from racebench.training.callbacks import TrainingInterrupted
 from racebench.training.config import BASELINES
 from racebench.training.dagger.resume import completed_iterations, resume_folder
 from racebench.training.models import DEVICES
@@ -426,9 +427,9 @@ def run_sweep(
     if max_runs is not None and (backend != "local" or max_runs < 1):
         raise ValueError("max_runs is an integer >= 1, for the local backend")
     if backend == "local":
-        started = 0
+        started, stopped = 0, False
         for run in sweep.runs:  # load_sweep lists a run's `after` before it
-            if max_runs is not None and started >= max_runs and not is_finished(run):
+            if (stopped or (max_runs is not None and started >= max_runs)) and not is_finished(run):
                 finish(run, {"run": run.label, "config": run.config.name, "track": run.track, "seed": run.seed,
                              "timesteps": None, "success_rate": None, "status": "not started"})  # fmt: skip
                 continue
@@ -437,6 +438,11 @@ def run_sweep(
             started += not is_finished(run)
             try:
                 finish(run, run_job(run))
+            except TrainingInterrupted as exc:  # stopped on request: checkpointed, and no further run starts
+                stopped = True
+                finish(run, {"run": run.label, "config": run.config.name, "track": run.track, "seed": run.seed,
+                             "timesteps": latest_checkpoint(run.out, run.config.name)[1], "success_rate": None,
+                             "status": f"interrupted: {exc}"})  # fmt: skip
             except Exception as exc:  # noqa: BLE001 - one failing run must not stop the sweep
                 traceback.print_exc()
                 finish(run, _failed(run, exc))
