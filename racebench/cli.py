@@ -185,6 +185,8 @@ def _export_onnx(args: argparse.Namespace) -> int:
 
     if args.check_env is not None and args.check_env not in ENV_IDS:
         raise SystemExit(f"racebench export-onnx: --check-env {args.check_env!r} is not a racebench id")
+    if args.check_steps < 1:  # zero steps would compare nothing and pass
+        raise SystemExit(f"racebench export-onnx: --check-steps must be at least 1, got {args.check_steps}")
     try:
         agent = SB3Agent(args.checkpoint, trust_code=args.trust_code, vecnormalize=_vecnormalize(args))
         # The checkpoint's statistics change its actions: they go into the graph.

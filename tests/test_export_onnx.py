@@ -162,3 +162,6 @@ def test_check_env_compares_the_actions_on_the_checkpoints_own_flight(tmp_path: 
     with pytest.raises(SystemExit, match=r"--check-env 'RaceObs-X-v0' is not a racebench id"):
         cli.main([*argv[:4], "--check-env", "RaceObs-X-v0"])
     assert not out.exists()  # refused before anything is written
+    with pytest.raises(SystemExit, match=r"--check-steps must be at least 1, got 0"):
+        cli.main([*argv[:-1], "0"])
+    assert not out.exists()

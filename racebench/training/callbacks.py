@@ -243,19 +243,20 @@ def checkpoint_on_sigterm() -> Iterator[None]:
         yield
         return
     previous = signal.getsignal(signal.SIGTERM)
+    previous = signal.SIG_DFL if previous is None else previous  # None: a handler not installed from Python
 
     def handler(signum: int, frame: Any) -> None:
         if _TRAINING.is_set() and not STOP_REQUESTED.is_set():
             STOP_REQUESTED.set()
             return
-        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+        signal.signal(signal.SIGTERM, previous)
         signal.raise_signal(signal.SIGTERM)
 
     signal.signal(signal.SIGTERM, handler)
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+        signal.signal(signal.SIGTERM, previous)
         STOP_REQUESTED.clear()
 
 
