@@ -64,7 +64,13 @@ def test_seed0_run_becomes_a_trusted_checkpoint(tmp_path: Path, root: Path) -> N
 
     dest = root / finish_script.CAMPAIGN / run.name
     assert sorted(p.name for p in dest.iterdir()) == [
-        "config.yaml", "curriculum.json", "eval", "policy", "progress.csv", "summary.json", "validation_curve.csv",
+        "config.yaml",
+        "curriculum.json",
+        "eval",
+        "policy",
+        "progress.csv",
+        "summary.json",
+        "validation_curve.csv",
         "written.json",
     ]  # fmt: skip  (no checkpoints/, no tb/)
     target = root / "baselines/checkpoints/vision-ppo-Circle"
