@@ -24,12 +24,12 @@ def trusted(trust_file: Path) -> dict[str, str]:
 
 
 def write_run(campaign: Path, seed: int, track: str = "Circle") -> Path:
-    run = campaign / f"vision-ppo-{track}-seed{seed}"
+    run = campaign / f"fixture-ppo-{track}-seed{seed}"
     for folder in ("eval", "policy", "checkpoints", "tb"):
         (run / folder).mkdir(parents=True)
     (run / "eval" / "summary.csv").write_text("env_id,n,successes\nRaceObs-Circle-v0,100,61\n")
-    (run / "policy" / f"vision-ppo-{track}.zip").write_bytes(b"policy bytes %d" % seed)
-    (run / "checkpoints" / "vision-ppo_999424_steps.zip").write_bytes(b"resume state")
+    (run / "policy" / f"fixture-ppo-{track}.zip").write_bytes(b"policy bytes %d" % seed)
+    (run / "checkpoints" / "fixture-ppo_999424_steps.zip").write_bytes(b"resume state")
     for name in ("config.yaml", "curriculum.json", "written.json", "validation_curve.csv"):
         (run / name).write_text(f"{name}\n")
     # two sessions: progress.csv's wall_s adds them up; 10 episodes end per row, success 0.5 then 1.0
@@ -39,10 +39,10 @@ def write_run(campaign: Path, seed: int, track: str = "Circle") -> Path:
         + "".join(",".join(str(v) for v in row) + "\n" for row in rows)
     )
     summary = {
-        "config": "vision-ppo", "track": track, "seed": seed, "timesteps": 4_000_000, "resumed_at": 2_000_000,
+        "config": "fixture-ppo", "track": track, "seed": seed, "timesteps": 4_000_000, "resumed_at": 2_000_000,
         "env_seed": 7, "wall_s": 2000.0, "samples_per_s": 1000.0, "level": 2,
         "promotions": [{"level": 2, "timestep": 1_500_000, "wall_s": 1500.0, "by": "budget"}],
-        "checkpoint": "/elsewhere/vision-ppo-Circle.zip", "policy": "/elsewhere/policy.zip",
+        "checkpoint": "/elsewhere/fixture-ppo-Circle.zip", "policy": "/elsewhere/policy.zip",
         "eval": {"n": 100, "successes": 61},
     }  # fmt: skip
     (run / "summary.json").write_text(json.dumps(summary))
@@ -73,9 +73,9 @@ def test_seed0_run_becomes_a_trusted_checkpoint(tmp_path: Path, root: Path) -> N
         "validation_curve.csv",
         "written.json",
     ]  # fmt: skip  (no checkpoints/, no tb/)
-    target = root / "baselines/checkpoints/vision-ppo-Circle"
+    target = root / "baselines/checkpoints/fixture-ppo-Circle"
     assert sorted(p.name for p in target.iterdir()) == [
-        "config.yaml", "curriculum.json", "eval", "progress.csv", "summary.json", "vision-ppo-Circle.zip",
+        "config.yaml", "curriculum.json", "eval", "fixture-ppo-Circle.zip", "progress.csv", "summary.json",
     ]  # fmt: skip
     summary = json.loads((target / "summary.json").read_text())
     assert summary["wall_s_total"] == 4000.0  # the last row's wall_s: both sessions, not the last part's 2000
@@ -83,13 +83,13 @@ def test_seed0_run_becomes_a_trusted_checkpoint(tmp_path: Path, root: Path) -> N
     assert summary["steps_at_final_level"] == 2_500_000
     # the last 200k steps are rows 39 and 40 (t > 3.8 M): 20 episodes, all successes
     assert summary["final_training_success"] == 1.0
-    assert summary["checkpoint"] == "baselines/checkpoints/vision-ppo-Circle/vision-ppo-Circle.zip"
+    assert summary["checkpoint"] == "baselines/checkpoints/fixture-ppo-Circle/fixture-ppo-Circle.zip"
     assert summary["trained_by"] == "sweep X" and summary["wall_s_note"] == "two sessions"
     assert not {"resumed_at", "env_seed", "wall_s", "samples_per_s", "policy"} & set(summary)
 
     after = trusted(root / finish_script.TRUST_FILE)
     digest = hashlib.sha256(b"policy bytes 0").hexdigest()
-    assert after == {**before, digest: "vision-ppo-Circle/vision-ppo-Circle.zip"}
+    assert after == {**before, digest: "fixture-ppo-Circle/fixture-ppo-Circle.zip"}
     # a second pass changes nothing in the trust list
     assert finish_script.main([str(run), "--root", str(root), "--trained-by", "sweep X", "--note", "n"]) == 0
     assert trusted(root / finish_script.TRUST_FILE) == after
@@ -105,7 +105,7 @@ def test_extra_seed_commits_summaries_not_checkpoints(tmp_path: Path, root: Path
     assert (root / finish_script.TRUST_FILE).read_text() == before
 
 
-@pytest.mark.parametrize("missing", ["summary.json", "eval/summary.csv", "policy/vision-ppo-Circle.zip"])
+@pytest.mark.parametrize("missing", ["summary.json", "eval/summary.csv", "policy/fixture-ppo-Circle.zip"])
 def test_unfinished_run_is_refused(tmp_path: Path, root: Path, missing: str, capsys: pytest.CaptureFixture) -> None:
     run = write_run(tmp_path / "campaign", seed=0)
     (run / missing).unlink()

@@ -217,6 +217,12 @@ def test_entries_with_their_own_tracks_and_seeds_run_in_the_files_order_one_at_a
     curve.iloc[:1].to_csv(out / "tiny-J-seed0" / "validation_curve.csv", index=False)
     again = validation_curve(out / "tiny-J-seed0", every=128, episodes=2)
     assert again["timesteps"].tolist() == [128, 256] and again["successes"].iloc[0] == 99
+    # A finished run's final model stands in where no periodic checkpoint is near a multiple (a resumed run's).
+    for late in (out / "tiny-J-seed0" / "checkpoints").glob("tiny*_256_steps.*"):
+        late.unlink()
+    curve.iloc[:1].to_csv(out / "tiny-J-seed0" / "validation_curve.csv", index=False)
+    last = validation_curve(out / "tiny-J-seed0", every=128, episodes=2)
+    assert last["timesteps"].tolist() == [128, summary["timesteps"]] and last["episodes"].iloc[1] == 2
     rows = run_sweep(load_sweep(path), max_runs=1)
     assert [row["status"] for row in rows] == ["skipped", "done", "not started"]
     with pytest.raises(SystemExit, match="--max-runs is an integer >= 1, for the local backend"):

@@ -528,6 +528,21 @@ def test_resume_after_a_killed_run(tmp_path: Path) -> None:
     assert not list((tmp_path / "checkpoints").glob("*partial*")), "a finished save left its partial file behind"
 
 
+def test_periodic_checkpoints_fall_on_absolute_steps_after_a_resume(tmp_path: Path) -> None:
+    """A part resumed off the grid still saves at the multiples of ``checkpoint_every`` (where the campaign's
+    validation curve is flown), not at multiples counted from where it resumed."""
+    config = small(TrainConfig.from_yaml(BASELINES[0].parent / "state-ppo.yaml"))
+    rollout = config.n_envs * config.n_steps
+    train(config, "S", steps=rollout, out=tmp_path, eval_episodes=0, checkpoint_every=1)
+    first = tmp_path / "checkpoints" / f"state-ppo_{rollout}_steps.zip"
+    assert first.is_file()
+    resumed = train(config, "S", steps=3 * rollout, out=tmp_path, resume=first, eval_episodes=0,
+                    checkpoint_every=2 * rollout)  # fmt: skip
+    assert resumed["timesteps"] == 4 * rollout
+    saved = sorted(int(p.stem.split("_")[-2]) for p in (tmp_path / "checkpoints").glob("state-ppo_*_steps.zip"))
+    assert saved == [rollout, 2 * rollout, 4 * rollout]  # counted from the resume it would be 3 rollouts
+
+
 def test_a_checkpoint_killed_mid_save_never_appears_under_its_name(tmp_path: Path) -> None:
     """The save goes to a sibling file: a kill inside it leaves no ``*_steps.zip`` a resume could pick up."""
     final = tmp_path / "run_128_steps.zip"

@@ -44,6 +44,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     ),
     "b95ac725bf00271c31b1cb00bb383e29dc1c887d30fe7311e740e4c051d9510f": "vision-distill-ppo-J/vision-distill-ppo-J.zip",
     "1499eb28f37fe2c3179aea4008452f404ac4c33893779659c6a5b582968e6703": "vision-ppo-J/vision-ppo-J.zip",
+    "22caeea1d89e61b0de28e6f3392b8911e94647bd7725c4f162a2f9473e4e8bde": "vision-ppo-Circle/vision-ppo-Circle.zip",
 }
 
 

@@ -442,11 +442,12 @@ def validation_curve(
     """Fly a run's periodic checkpoints nearest each multiple of ``every`` steps on ``episodes`` validation scenes of
     its track's main id (deterministic actions, ray-cast depth); write and return ``validation_curve.csv``.
 
-    Columns: timesteps (of the checkpoint), episodes, successes, success_rate, mean_return (the training return
-    logged nearest that step in ``progress.csv``). Incremental: the rows already in the file are kept and only the
-    missing multiples whose checkpoint exists are flown, so a run that spans sessions (and keeps only its newest
-    checkpoint) adds its points as it goes. A checkpoint is unpickled only if the run folder wrote it (its
-    ``written.json``) or with ``trust_code``.
+    The checkpoints are the periodic ones under ``checkpoints/`` and, once the run has finished, its final model
+    (at ``summary.json``'s timesteps). Columns: timesteps (of the checkpoint), episodes, successes, success_rate,
+    mean_return (the training return logged nearest that step in ``progress.csv``). Incremental: the rows already
+    in the file are kept and only the missing multiples whose checkpoint exists are flown, so a run that spans
+    sessions (and keeps only its newest checkpoint) adds its points as it goes. A checkpoint is unpickled only if
+    the run folder wrote it (its ``written.json``) or with ``trust_code``.
     """
     run_dir = Path(run_dir)
     match = _RUN.match(run_dir.name)
@@ -456,6 +457,9 @@ def validation_curve(
     for path in (run_dir / "checkpoints").glob("*_steps.zip"):
         steps = int(re.search(r"_(\d+)_steps\.zip$", path.name)[1])
         found[steps] = path
+    final, summary = run_dir / f"{match['config']}-{match['track']}.zip", run_dir / "summary.json"
+    if final.is_file() and summary.is_file():  # a finished run's final model is its checkpoint at its last step
+        found.setdefault(int(json.loads(summary.read_text())["timesteps"]), final)
     path = run_dir / "validation_curve.csv"
     rows = pd.read_csv(path).to_dict("records") if path.is_file() else []
     if not found and not rows:

@@ -271,6 +271,10 @@ class AtomicCheckpointCallback(CheckpointCallback):
     With ``run_dir`` each file's sha256 is recorded in that folder's :data:`~racebench.agents.trust.WRITTEN_FILE` once
     it is in place, so resuming from it trusts it without ``--trust-code``. ``rollout_calls``: the steps of one
     rollout (``n_steps``), where a stop's checkpoint is taken, as the periodic ones are.
+
+    Periodic checkpoints fall on a grid of absolute steps (the first rollout end at or past each multiple of
+    ``save_freq`` vector steps), not counted from where a resumed part started: a run resumed at 2.66 M steps
+    still saves at 3.0 M and 4.0 M, the points its validation curve is flown at.
     """
 
     def __init__(
@@ -280,16 +284,24 @@ class AtomicCheckpointCallback(CheckpointCallback):
         self.run_dir = run_dir
         self.rollout_calls = rollout_calls or self.save_freq
         self.interrupted: Path | None = None  # the checkpoint a stop on request saved
+        self.next_save = 0  # env steps: the next grid point, set when training starts
 
     def _on_training_start(self) -> None:
         _TRAINING.set()
+        period = self.save_freq * self.model.n_envs
+        self.next_save = (self.model.num_timesteps // period + 1) * period
 
     def _on_training_end(self) -> None:
         _TRAINING.clear()
 
     def _on_step(self) -> bool:
-        stop = STOP_REQUESTED.is_set() and self.n_calls % self.rollout_calls == 0
-        if self.n_calls % self.save_freq == 0 or stop:
+        rollout_end = self.n_calls % self.rollout_calls == 0
+        stop = STOP_REQUESTED.is_set() and rollout_end
+        periodic = rollout_end and self.num_timesteps >= self.next_save
+        if periodic:
+            period = self.save_freq * self.model.n_envs
+            self.next_save = (self.num_timesteps // period + 1) * period
+        if periodic or stop:
             normalizer = self.model.get_vec_normalize_env()
             if self.save_vecnormalize and normalizer is not None:
                 stats = Path(self._checkpoint_path("vecnormalize_", extension="pkl"))
