@@ -150,6 +150,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         written = finish(args.run_dir, args.root, args.trained_by, args.note)
+    except KeyError as error:  # a summary.json without a field the sweep always writes
+        print(f"campaign_finish: {args.run_dir}/summary.json has no {error} field", file=sys.stderr)
+        return 1
     except (ValueError, OSError) as error:
         print(f"campaign_finish: {error}", file=sys.stderr)
         return 1

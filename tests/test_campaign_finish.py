@@ -114,6 +114,14 @@ def test_unfinished_run_is_refused(tmp_path: Path, root: Path, missing: str, cap
     assert not (root / "baselines").exists()
 
 
+def test_a_summary_without_its_fields_is_one_line(tmp_path: Path, root: Path, capsys: pytest.CaptureFixture) -> None:
+    run = write_run(tmp_path / "campaign", seed=0)
+    (run / "summary.json").write_text(json.dumps({"seed": 0}))
+    assert finish_script.main([str(run), "--root", str(root), "--trained-by", "t", "--note", "n"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "summary.json has no 'config' field" in err
+
+
 def test_another_digest_for_a_trusted_path_is_refused(root: Path) -> None:
     trust_file = root / finish_script.TRUST_FILE
     path = next(iter(trusted(trust_file).values()))
