@@ -288,8 +288,7 @@ class AtomicCheckpointCallback(CheckpointCallback):
 
     def _on_training_start(self) -> None:
         _TRAINING.set()
-        period = self.save_freq * self.model.n_envs
-        self.next_save = (self.model.num_timesteps // period + 1) * period
+        self._advance_grid(self.model.num_timesteps)
 
     def _on_training_end(self) -> None:
         _TRAINING.clear()
@@ -299,8 +298,7 @@ class AtomicCheckpointCallback(CheckpointCallback):
         stop = STOP_REQUESTED.is_set() and rollout_end
         periodic = rollout_end and self.num_timesteps >= self.next_save
         if periodic:
-            period = self.save_freq * self.model.n_envs
-            self.next_save = (self.num_timesteps // period + 1) * period
+            self._advance_grid(self.num_timesteps)
         if periodic or stop:
             normalizer = self.model.get_vec_normalize_env()
             if self.save_vecnormalize and normalizer is not None:
@@ -314,6 +312,11 @@ class AtomicCheckpointCallback(CheckpointCallback):
                 self.interrupted = checkpoint
                 return False  # SB3 ends learn() here
         return True
+
+    def _advance_grid(self, steps: int) -> None:
+        """Set :attr:`next_save` to the first multiple of the period (``save_freq`` vector steps) after ``steps``."""
+        period = self.save_freq * self.model.n_envs
+        self.next_save = (steps // period + 1) * period
 
     def _record(self, path: Path) -> None:
         if self.run_dir is not None:
