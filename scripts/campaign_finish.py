@@ -20,7 +20,6 @@ is refused: it has not finished.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shutil
 import sys
@@ -29,6 +28,7 @@ from pathlib import Path
 import pandas as pd
 
 from racebench.reporting.paper import final_training_success
+from racebench.utils.files import sha256_file
 
 CAMPAIGN = Path("baselines/experiments/campaign-4m")
 CHECKPOINTS = Path("baselines/checkpoints")
@@ -136,8 +136,7 @@ def finish(run_dir: Path, root: Path, trained_by: str, note: str) -> list[Path]:
         run=str(CAMPAIGN / run_dir.name), trained_by=trained_by, note=note,
     )  # fmt: skip
     (target / "summary.json").write_text(json.dumps(whole, indent=2) + "\n")
-    sha256 = hashlib.sha256(policy.read_bytes()).hexdigest()
-    add_trusted(root / TRUST_FILE, sha256, f"{name}/{policy.name}")
+    add_trusted(root / TRUST_FILE, sha256_file(policy), f"{name}/{policy.name}")
     return [dest, target]
 
 
