@@ -168,3 +168,21 @@ def test_final_training_success_pools_the_last_window_by_episodes() -> None:
     })  # fmt: skip
     assert final_training_success(progress) == pytest.approx((10 * 1.0 + 30 * 0.5 + 30 * 0.5 + 1 * 0.0) / 71)
     assert final_training_success(progress.iloc[:0]) is None
+
+
+def test_a_stopped_runs_checkpoint_never_stands_in_for_a_multiple_it_has_not_reached(tmp_path: Path) -> None:
+    """A run stopped at 2.82 M steps keeps its checkpoint; the 3 M validation point waits for the run to reach 3 M
+    (the kept rows stay and nothing is flown: the stop checkpoint is a file that would fail to load)."""
+    from racebench.reporting.paper import validation_curve
+
+    run = tmp_path / "state-ppo-S-seed0"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "state-ppo_2822144_steps.zip").write_bytes(b"not a checkpoint")
+    pd.DataFrame({"timesteps": [2_820_096], "mean_return": [4.2]}).to_csv(run / "progress.csv", index=False)
+    kept = pd.DataFrame([{"timesteps": 1_998_848, "episodes": 100, "successes": 0, "success_rate": 0.0,
+                          "mean_return": 11.9}])  # fmt: skip
+    kept.to_csv(run / "validation_curve.csv", index=False)
+    curve = validation_curve(run, every=1_000_000, episodes=100)
+    assert curve["timesteps"].tolist() == [1_998_848]
+    (run / "validation_curve.csv").unlink()
+    assert validation_curve(run, every=1_000_000, episodes=100).empty  # nothing reached yet, nothing flown

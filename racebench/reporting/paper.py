@@ -445,9 +445,9 @@ def validation_curve(
     The checkpoints are the periodic ones under ``checkpoints/`` and, once the run has finished, its final model
     (at ``summary.json``'s timesteps). Columns: timesteps (of the checkpoint), episodes, successes, success_rate,
     mean_return (the training return logged nearest that step in ``progress.csv``). Incremental: the rows already
-    in the file are kept and only the missing multiples whose checkpoint exists are flown, so a run that spans
-    sessions (and keeps only its newest checkpoint) adds its points as it goes. A checkpoint is unpickled only if
-    the run folder wrote it (its ``written.json``) or with ``trust_code``.
+    in the file are kept and only the missing multiples the run has reached are flown, so a run that spans sessions
+    adds its points as it goes (a stopped run's checkpoint short of the next multiple never stands in for it). A
+    checkpoint is unpickled only if the run folder wrote it (its ``written.json``) or with ``trust_code``.
     """
     run_dir = Path(run_dir)
     match = _RUN.match(run_dir.name)
@@ -470,7 +470,9 @@ def validation_curve(
     done = {round(row["timesteps"] / every) for row in rows}
     for target in range(every, max(found, default=0) + every // 2, every):
         steps = min(found, key=lambda s: abs(s - target))
-        if abs(steps - target) > every // 4 or target // every in done:
+        # A grid checkpoint sits at the multiple or up to a rollout past it (below it only by the grid's rounding
+        # to whole vector steps); one well before it is a stopped run's, which has not reached that point yet.
+        if not -(every // 100) <= steps - target <= every // 4 or target // every in done:
             continue
         agent = load_agent(str(found[steps]), trust_code=own_policy_trust(run_dir, found[steps], trust_code))
         results: list[dict] = []
@@ -483,7 +485,8 @@ def validation_curve(
         rows.append({"timesteps": steps, "episodes": len(results), "successes": successes,
                      "success_rate": successes / len(results),
                      "mean_return": float(near["mean_return"].iloc[0])})  # fmt: skip
-    curve = pd.DataFrame(rows).sort_values("timesteps", ignore_index=True)
+    columns = ["timesteps", "episodes", "successes", "success_rate", "mean_return"]
+    curve = pd.DataFrame(rows, columns=columns).sort_values("timesteps", ignore_index=True)
     atomic_write(path, curve.to_csv(index=False))
     return curve
 
