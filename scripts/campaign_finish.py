@@ -14,13 +14,16 @@ seed-0 run it also writes ``baselines/checkpoints/<config>-<track>/``: the polic
 ``progress.csv``, ``config.yaml``, ``curriculum.json`` and a ``summary.json`` for the whole run (wall clock over all
 its sessions from ``progress.csv``, steps at the final level, final training success), and adds the checkpoint's
 sha256 to ``TRUSTED_CHECKPOINTS`` in ``racebench/agents/trust.py``. A run without ``summary.json`` or an evaluation
-is refused: it has not finished.
+is refused: it has not finished. A checkpoint folder that already holds another trusted policy (the committed
+``state-ppo-S`` and ``vision-ppo-S``, trained with older configs, which issue 48's new S runs replace) is refused
+unless ``--replace`` says so; then the folder is rewritten whole and the old digest leaves the trust list.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -99,32 +102,45 @@ def trust_line(sha256: str, relative: str) -> str:
     return line if len(line) - 1 <= LINE_LENGTH else f'    "{sha256}": (\n        "{relative}"\n    ),\n'
 
 
-def add_trusted(trust_file: Path, sha256: str, relative: str) -> bool:
+def add_trusted(trust_file: Path, sha256: str, relative: str, replace: bool = False) -> bool:
     """Add ``sha256 -> relative`` to ``TRUSTED_CHECKPOINTS`` (False if it is there already). Another digest for the
-    same path is refused: a replaced checkpoint is a decision (issue 48's new S runs) made by hand."""
+    same path is refused unless ``replace``, which drops it: replacing a trusted checkpoint is a decision (issue 48's
+    new S runs), so it is asked for by name."""
     text = trust_file.read_text()
     start = text.index("TRUSTED_CHECKPOINTS: dict[str, str] = {")
     end = text.index("\n}\n", start) + 1
     if f'"{sha256}"' in text[start:end]:
         return False
-    if f'"{relative}"' in text[start:end]:
-        raise ValueError(f"{trust_file}: {relative} is trusted under another sha256; replace that entry by hand")
+    for old in re.findall(r'"([0-9a-f]{64})": \(?\s*"([^"]+)"', text[start:end]):
+        if old[1] != relative:
+            continue
+        if not replace:
+            raise ValueError(f"{trust_file}: {relative} is trusted under another sha256; pass --replace to replace it")
+        if trust_line(*old) not in text:
+            raise ValueError(f"{trust_file}: the entry for {relative} is not in the form this script writes")
+        text = text.replace(trust_line(*old), "", 1)
+        end = text.index("\n}\n", start) + 1
     trust_file.write_text(text[:end] + trust_line(sha256, relative) + text[end:])
     return True
 
 
-def finish(run_dir: Path, root: Path, trained_by: str, note: str) -> list[Path]:
-    """Copy a finished run into the repository at ``root``; return the folders written."""
+def finish(run_dir: Path, root: Path, trained_by: str, note: str, replace: bool = False) -> list[Path]:
+    """Copy a finished run into the repository at ``root``; return the folders written. ``replace``: the run's
+    checkpoint folder may hold another trusted policy, which it replaces."""
     summary = finished_summary(run_dir)
     seed0 = summary["seed"] == 0
+    name = f"{summary['config']}-{summary['track']}"
+    policy = policy_file(run_dir, summary)
+    if seed0:  # first, so that a refused replacement writes nothing
+        add_trusted(root / TRUST_FILE, sha256_file(policy), f"{name}/{policy.name}", replace=replace)
     dest = root / CAMPAIGN / run_dir.name
     copy_run(run_dir, dest, with_policy=seed0)
     if not seed0:  # extra seeds: summaries and evaluations, not checkpoints (issue 48)
         return [dest]
-    name = f"{summary['config']}-{summary['track']}"
     target = root / CHECKPOINTS / name
+    if replace and target.exists():
+        shutil.rmtree(target)  # nothing of the replaced run's files stays beside the new policy
     target.mkdir(parents=True, exist_ok=True)
-    policy = policy_file(run_dir, summary)
     shutil.copy2(policy, target / policy.name)
     for file in CHECKPOINT_FILES:
         shutil.copy2(run_dir / file, target / file)
@@ -136,7 +152,6 @@ def finish(run_dir: Path, root: Path, trained_by: str, note: str) -> list[Path]:
         run=str(CAMPAIGN / run_dir.name), trained_by=trained_by, note=note,
     )  # fmt: skip
     (target / "summary.json").write_text(json.dumps(whole, indent=2) + "\n")
-    add_trusted(root / TRUST_FILE, sha256_file(policy), f"{name}/{policy.name}")
     return [dest, target]
 
 
@@ -146,9 +161,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", type=Path, default=Path("."), help="the main checkout (default: here)")
     parser.add_argument("--trained-by", required=True, help="the command and pinned commits that trained it")
     parser.add_argument("--note", required=True, help="sessions, sharing and pauses behind its wall clock")
+    parser.add_argument("--replace", action="store_true", help="replace the trusted policy already in its folder")
     args = parser.parse_args(argv)
     try:
-        written = finish(args.run_dir, args.root, args.trained_by, args.note)
+        written = finish(args.run_dir, args.root, args.trained_by, args.note, args.replace)
     except KeyError as error:  # a summary.json without a field the sweep always writes
         print(f"campaign_finish: {args.run_dir}/summary.json has no {error} field", file=sys.stderr)
         return 1

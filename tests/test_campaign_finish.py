@@ -125,7 +125,7 @@ def test_a_summary_without_its_fields_is_one_line(tmp_path: Path, root: Path, ca
 def test_another_digest_for_a_trusted_path_is_refused(root: Path) -> None:
     trust_file = root / finish_script.TRUST_FILE
     path = next(iter(trusted(trust_file).values()))
-    with pytest.raises(ValueError, match="another sha256"):
+    with pytest.raises(ValueError, match="another sha256; pass --replace"):
         finish_script.add_trusted(trust_file, "0" * 64, path)
 
 
@@ -135,3 +135,35 @@ def test_long_trust_entries_wrap_within_the_line_length(root: Path) -> None:
     assert finish_script.add_trusted(trust_file, "a" * 64, long_path)
     assert trusted(trust_file)["a" * 64] == long_path
     assert max(len(line) for line in trust_file.read_text().splitlines()) <= finish_script.LINE_LENGTH
+
+
+def test_replace_swaps_the_trusted_policy_of_a_folder_and_nothing_else(tmp_path: Path, root: Path) -> None:
+    """Issue 48's new S runs replace the committed S checkpoints: refused without --replace (nothing written),
+    with it the old digest leaves the trust list, the new one enters, and no old file stays in the folder."""
+    first = write_run(tmp_path / "one", seed=0)
+    assert finish_script.main([str(first), "--root", str(root), "--trained-by", "t", "--note", "n"]) == 0
+    target = root / "baselines/checkpoints/fixture-ppo-Circle"
+    (target / "old-notes.txt").write_text("from the replaced run")
+    before = trusted(root / finish_script.TRUST_FILE)
+    second = write_run(tmp_path / "two", seed=0)
+    (second / "policy" / "fixture-ppo-Circle.zip").write_bytes(b"a retrained policy")
+    argv = [str(second), "--root", str(root), "--trained-by", "t2", "--note", "n"]
+    assert finish_script.main(argv) == 1
+    assert trusted(root / finish_script.TRUST_FILE) == before and (target / "old-notes.txt").is_file()
+    assert finish_script.main([*argv, "--replace"]) == 0
+    old, new = (hashlib.sha256(data).hexdigest() for data in (b"policy bytes 0", b"a retrained policy"))
+    after = trusted(root / finish_script.TRUST_FILE)
+    assert old not in after and after[new] == "fixture-ppo-Circle/fixture-ppo-Circle.zip"
+    assert {k: v for k, v in after.items() if k != new} == {k: v for k, v in before.items() if k != old}
+    assert not (target / "old-notes.txt").exists()
+    assert (target / "fixture-ppo-Circle.zip").read_bytes() == b"a retrained policy"
+    assert json.loads((target / "summary.json").read_text())["trained_by"] == "t2"
+
+
+def test_replace_drops_a_wrapped_entry_too(root: Path) -> None:
+    trust_file = root / finish_script.TRUST_FILE
+    long_path = "vision-no-avoid-Circle/vision-no-avoid-Circle.zip"
+    assert finish_script.add_trusted(trust_file, "a" * 64, long_path)
+    assert finish_script.add_trusted(trust_file, "b" * 64, long_path, replace=True)
+    entries = trusted(trust_file)
+    assert "a" * 64 not in entries and entries["b" * 64] == long_path
