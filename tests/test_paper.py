@@ -186,3 +186,57 @@ def test_a_stopped_runs_checkpoint_never_stands_in_for_a_multiple_it_has_not_rea
     assert curve["timesteps"].tolist() == [1_998_848]
     (run / "validation_curve.csv").unlink()
     assert validation_curve(run, every=1_000_000, episodes=100).empty  # nothing reached yet, nothing flown
+
+
+class _StateHover:
+    """A batch agent on the state vector that hovers, and checks it is given the state vector."""
+
+    obs_mode, name, privileged = "state", "hover-state", False
+
+    def start(self, slots: int) -> None:
+        self.slots = slots
+
+    def reset_slot(self, slot: int) -> None:
+        pass
+
+    def reset(self, env: object = None, seed: int | None = None) -> None:
+        pass
+
+    shapes: set = set()  # the observation shapes it was given
+
+    def act_batch(self, observations: list) -> np.ndarray:
+        self.shapes.update(np.shape(obs) if isinstance(obs, np.ndarray) else type(obs).__name__ for obs in observations)
+        return np.tile(np.array([0.0, 0.0, 0.0, 0.0], np.float32), (len(observations), 1))
+
+
+def _one_checkpoint_run(tmp_path: Path) -> Path:
+    run = tmp_path / "state-ppo-S-seed0"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "state-ppo_999424_steps.zip").write_bytes(b"stands for a checkpoint")
+    pd.DataFrame({"timesteps": [999_424], "mean_return": [3.0]}).to_csv(run / "progress.csv", index=False)
+    return run
+
+
+def test_validation_flies_a_state_policy_on_the_state_vector(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Campaign run 3 (``state-ppo`` on S) got depth dicts in validation: every episode errored and the curve read
+    0 % while its evaluation read 45 %. A state agent now gets its own observation."""
+    from racebench.reporting import paper
+
+    monkeypatch.setattr(paper, "load_agent", lambda *_a, **_k: _StateHover())
+    curve = paper.validation_curve(_one_checkpoint_run(tmp_path), every=1_000_000, episodes=2, trust_code=True)
+    assert curve["timesteps"].tolist() == [999_424] and curve["episodes"].tolist() == [2]
+    assert _StateHover.shapes == {(17,)}
+
+
+def test_validation_episodes_that_error_are_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from racebench.reporting import paper
+
+    class Broken(_StateHover):
+        def act_batch(self, observations: list) -> np.ndarray:
+            raise TypeError("wrong observation")
+
+    monkeypatch.setattr(paper, "load_agent", lambda *_a, **_k: Broken())
+    run = _one_checkpoint_run(tmp_path)
+    with pytest.raises(ValueError, match="2 of 2 validation episodes ended in an error, first: .*wrong observation"):
+        paper.validation_curve(run, every=1_000_000, episodes=2, trust_code=True)
+    assert not (run / "validation_curve.csv").exists()

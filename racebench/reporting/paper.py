@@ -27,6 +27,7 @@ import json
 import math
 import re
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import gymnasium as gym
@@ -477,9 +478,13 @@ def validation_curve(
         agent = load_agent(str(found[steps]), trust_code=own_policy_trust(run_dir, found[steps], trust_code))
         results: list[dict] = []
         with SingleTorchThread():
-            run_lockstep(agent, [(env_id, s) for s in seeds], _raycast_env,
+            run_lockstep(agent, [(env_id, s) for s in seeds], partial(_raycast_env, obs_mode=agent.obs_mode),
                          lambda _e, _s, result, _f, kept=results: kept.append(result),
                          width=min(64, episodes))  # fmt: skip
+        errors = [r for r in results if r.get("error")]
+        if errors:  # an episode the agent could not fly is no failure to count: the curve would lie
+            raise ValueError(f"{found[steps]}: {len(errors)} of {len(results)} validation episodes ended in an "
+                             f"error, first: {errors[0]['error']}")  # fmt: skip
         near = progress.iloc[(progress["timesteps"] - steps).abs().argsort()[:1]]
         successes = sum(bool(r.get("success")) for r in results)
         rows.append({"timesteps": steps, "episodes": len(results), "successes": successes,
@@ -491,8 +496,8 @@ def validation_curve(
     return curve
 
 
-def _raycast_env(env_id: str):
-    return gym.make(env_id, renderer="raycast")
+def _raycast_env(env_id: str, obs_mode: str):
+    return gym.make(env_id, obs_mode=obs_mode, renderer="raycast")  # the observation the agent was trained on
 
 
 def learning_curves(root: Path, out: Path, campaign: Path = CAMPAIGN) -> pd.DataFrame | None:
