@@ -32,7 +32,6 @@ from racebench.utils.files import atomic_write, sha256_file
 #: without ``trust_code`` (``tests/test_checkpoints.py`` keeps this list and the committed files in step).
 TRUSTED_CHECKPOINTS: dict[str, str] = {
     "a9648364a3a9c09e80189685eaecd34bfa47c1812bb7de8ab5a5cf00bd2bcd92": "vision-ppo-S/vision-ppo-S.zip",
-    "3197e89e15de4f01be8cfb9e70d3595d9c50f3a15a5f99ea13b505429dfcc6b9": "state-ppo-S/state-ppo-S.zip",
     "ab21b31bfddbbf6add303d7a694b271802ec9b0174ca333f24a6a5938f298373": "vision-distill-S/vision-distill-S.zip",
     "2db06548dde9f2989e1d25394faac2d02a37deaff6e2893bbf4b4eb7da64650a": "vision-distill-ppo-S/vision-distill-ppo-S.zip",
     "5639e53c43a9f9f45ea1dac34c8058f3c8250b76e7d922016a243e329a07a4ed": (
@@ -45,6 +44,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "b95ac725bf00271c31b1cb00bb383e29dc1c887d30fe7311e740e4c051d9510f": "vision-distill-ppo-J/vision-distill-ppo-J.zip",
     "1499eb28f37fe2c3179aea4008452f404ac4c33893779659c6a5b582968e6703": "vision-ppo-J/vision-ppo-J.zip",
     "22caeea1d89e61b0de28e6f3392b8911e94647bd7725c4f162a2f9473e4e8bde": "vision-ppo-Circle/vision-ppo-Circle.zip",
+    "1c297ec8d07ba5cdb8b77aacd8be89bd68cc4b43ecd869a1f6a7f4e800aebb12": "state-ppo-S/state-ppo-S.zip",
 }
 
 

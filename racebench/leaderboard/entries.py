@@ -365,7 +365,7 @@ def _summary_budget(policy: str, root: Path) -> tuple[int | None, float | None]:
     except (OSError, ValueError):
         return None, None
     steps = data.get("env_steps", data.get("timesteps"))
-    wall = data.get("wall_s")
+    wall = data.get("wall_s_total", data.get("wall_s"))  # a resumed campaign run: all its sessions (campaign_finish)
     return (int(steps) if isinstance(steps, int) else None, float(wall) if isinstance(wall, (int, float)) else None)
 
 
