@@ -16,9 +16,10 @@ from racebench import cli
 from racebench.evaluation.records import read_folder
 from racebench.evaluation.seeds import SALT_ENV, private_seeds, salt_sha256
 from racebench.leaderboard import signing
-from racebench.leaderboard.entries import DEFAULT_LEADERBOARD, dump_entry, file_sha256, load_config, load_entry
+from racebench.leaderboard.entries import DEFAULT_LEADERBOARD, dump_entry, load_config, load_entry
 from racebench.leaderboard.signing import SignatureError, build_payload, records_sha256
 from racebench.leaderboard.site import build_site, entry_row
+from racebench.utils.files import sha256_file
 
 ROOT = Path(__file__).parents[1]
 S = "RaceObs-S-v0"
@@ -67,7 +68,7 @@ def test_a_signed_result_makes_the_entry_verified_with_the_signed_numbers(repo, 
     payload = document["payload"]
     (policy,) = payload["policies"]
     records = read_folder(repo["secrets"] / "private" / "method-S").sorted_records()
-    assert policy["policy_sha256"] == file_sha256(repo["export"]) and policy["policy"] == "policies/export.onnx"
+    assert policy["policy_sha256"] == sha256_file(repo["export"]) and policy["policy"] == "policies/export.onnx"
     assert policy["records_sha256"] == records_sha256(records)
     assert (policy["cells"][S]["successes"], policy["cells"][S]["n"], len(policy["cells"][S]["lap_times"])) == (
         7,

@@ -27,7 +27,6 @@ signature never make an entry verified.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -47,6 +46,7 @@ from racebench.evaluation.protocol import SUITES, TRACK_ORDER, split_env_id
 from racebench.evaluation.records import RECORDS_FILE, has_records, name_of, read_folder
 from racebench.evaluation.seeds import seeds_for
 from racebench.evaluation.statistics import wilson_interval
+from racebench.utils.files import sha256_file
 from racebench.utils.yamlfile import yaml_problem
 
 ENTRY_FILE = "entry.yaml"
@@ -346,15 +346,6 @@ def _check_fields(mapping: dict[str, Any], fields: dict[str, tuple[tuple[type, .
             raise EntryError(f"{where}: {key} is {mapping[key]!r}, expected {'/'.join(t.__name__ for t in types)}")
 
 
-def file_sha256(path: str | Path) -> str:
-    """sha256 of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _summary_budget(policy: str, root: Path) -> tuple[int | None, float | None]:
     """Steps and wall clock from the ``summary.json`` a training run wrote beside the checkpoint (None if absent)."""
     if policy.startswith("builtin:"):
@@ -377,7 +368,7 @@ def load_policy(name: str, track: str, line: dict[str, Any], root: Path) -> Poli
         path = _inside(Path(onnx), root, "onnx", name)
         if not path.is_file():
             raise EntryError(f"{name}: {track} onnx file {onnx!r} does not exist in the repository")
-        onnx_digest = file_sha256(path)
+        onnx_digest = sha256_file(path)
     steps, wall = line.get("steps"), line.get("wall_clock_s")
     source = "entry.yaml"
     if steps is None or wall is None:

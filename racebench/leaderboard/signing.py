@@ -30,7 +30,8 @@ from racebench.envs.registration import ENV_VERSION
 from racebench.evaluation.evaluator import Evaluator
 from racebench.evaluation.records import read_folder
 from racebench.evaluation.seeds import salt_sha256
-from racebench.leaderboard.entries import Cell, Entry, check_seed_prefixes, file_sha256
+from racebench.leaderboard.entries import Cell, Entry, check_seed_prefixes
+from racebench.utils.files import sha256_file
 
 VERIFIED_FILE = "verified.json"
 SIGNED_FORMAT = 1
@@ -275,7 +276,7 @@ def check_verified(entry: Entry, config: Mapping[str, Any], pinned_key_sha256: s
             raise SignatureError(
                 f"{entry.name}: the {track} policy is {policy.onnx!r}, the signed one {mine['policy']!r}"
             )
-        actual = file_sha256(entry.root / policy.onnx) if (entry.root / policy.onnx).is_file() else "missing"
+        actual = sha256_file(entry.root / policy.onnx) if (entry.root / policy.onnx).is_file() else "missing"
         if actual != mine["policy_sha256"]:
             raise SignatureError(
                 f"{entry.name}: the policy file {policy.onnx} (sha256 {actual[:12]}…) is not the one signed "
