@@ -439,7 +439,8 @@ def _summaries(results: Sequence[str], command: str):
 
 def _paper_tables(args: argparse.Namespace) -> int:
     """``racebench paper-tables``: Tables II-IV, claims.md, the README block and the learning curves."""
-    from racebench.reporting.paper import validation_curve, write_report
+    from racebench.reporting.paper import write_report
+    from racebench.reporting.validation import validation_curve
 
     root = Path(args.root)
     try:

@@ -147,7 +147,6 @@ LONG_MODULES: dict[str, tuple[int, str]] = {
     "racebench/envs/env.py": (660, "RaceEnv, one class; its docstring is the env's reference (spaces, parameters)"),
     "racebench/benchmark.py": (640, "racebench bench: one throughput table, a section per measured stage"),
     "racebench/leaderboard/entries.py": (640, "an entry: its metadata, records and tier"),
-    "racebench/reporting/paper.py": (640, "the paper's tables and claims from a campaign"),
 }
 
 

@@ -173,7 +173,7 @@ def test_final_training_success_pools_the_last_window_by_episodes() -> None:
 def test_a_stopped_runs_checkpoint_never_stands_in_for_a_multiple_it_has_not_reached(tmp_path: Path) -> None:
     """A run stopped at 2.82 M steps keeps its checkpoint; the 3 M validation point waits for the run to reach 3 M
     (the kept rows stay and nothing is flown: the stop checkpoint is a file that would fail to load)."""
-    from racebench.reporting.paper import validation_curve
+    from racebench.reporting.validation import validation_curve
 
     run = tmp_path / "state-ppo-S-seed0"
     (run / "checkpoints").mkdir(parents=True)
@@ -220,23 +220,23 @@ def _one_checkpoint_run(tmp_path: Path) -> Path:
 def test_validation_flies_a_state_policy_on_the_state_vector(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Campaign run 3 (``state-ppo`` on S) got depth dicts in validation: every episode errored and the curve read
     0 % while its evaluation read 45 %. A state agent now gets its own observation."""
-    from racebench.reporting import paper
+    from racebench.reporting import validation
 
-    monkeypatch.setattr(paper, "load_agent", lambda *_a, **_k: _StateHover())
-    curve = paper.validation_curve(_one_checkpoint_run(tmp_path), every=1_000_000, episodes=2, trust_code=True)
+    monkeypatch.setattr(validation, "load_agent", lambda *_a, **_k: _StateHover())
+    curve = validation.validation_curve(_one_checkpoint_run(tmp_path), every=1_000_000, episodes=2, trust_code=True)
     assert curve["timesteps"].tolist() == [999_424] and curve["episodes"].tolist() == [2]
     assert _StateHover.shapes == {(17,)}
 
 
 def test_validation_episodes_that_error_are_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from racebench.reporting import paper
+    from racebench.reporting import validation
 
     class Broken(_StateHover):
         def act_batch(self, observations: list) -> np.ndarray:
             raise TypeError("wrong observation")
 
-    monkeypatch.setattr(paper, "load_agent", lambda *_a, **_k: Broken())
+    monkeypatch.setattr(validation, "load_agent", lambda *_a, **_k: Broken())
     run = _one_checkpoint_run(tmp_path)
     with pytest.raises(ValueError, match="2 of 2 validation episodes ended in an error, first: .*wrong observation"):
-        paper.validation_curve(run, every=1_000_000, episodes=2, trust_code=True)
+        validation.validation_curve(run, every=1_000_000, episodes=2, trust_code=True)
     assert not (run / "validation_curve.csv").exists()

@@ -211,7 +211,7 @@ def test_entries_with_their_own_tracks_and_seeds_run_in_the_files_order_one_at_a
     curve = pd.read_csv(out / "tiny-J-seed0" / "validation_curve.csv")
     assert curve["timesteps"].tolist() == [128, 256] and set(curve["episodes"]) == {2}
     # Incremental: a kept row is not flown again, a missing multiple is (a run spanning sessions keeps its points).
-    from racebench.reporting.paper import validation_curve
+    from racebench.reporting.validation import validation_curve
 
     curve.loc[0, "successes"] = 99  # a marker: flown again, it would be 0, 1 or 2
     curve.iloc[:1].to_csv(out / "tiny-J-seed0" / "validation_curve.csv", index=False)

@@ -58,3 +58,8 @@ def split_env_id(env_id: str) -> tuple[str, str]:
     if not match:
         return env_id, "custom"
     return match["track"], match["variant"] or "default"
+
+
+def env_id_of(track: str, variant: str = "default") -> str:
+    """The inverse of :func:`split_env_id`: (``"S"``, ``"Density5"``) → ``RaceObs-S-Density5-v0``."""
+    return f"RaceObs-{track}-v0" if variant == "default" else f"RaceObs-{track}-{variant}-v0"

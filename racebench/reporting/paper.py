@@ -16,33 +16,25 @@ results block, copied between its markers) and, from each run's ``validation_cur
 ``figures/learning_curves.png`` with their CSV. Every cell puts the paper's number beside ours (``72 [63–80] · paper
 100``); a row of several training seeds shows their mean success rate and the range over the seeds.
 
-Validation curves (:func:`validation_curve`) fly a run's periodic checkpoints on validation scenes (seeds
-``VALIDATION_SEED_BASE + i``, disjoint from training and evaluation seeds) with deterministic actions and ray-cast
-depth, so curves of configs trained at different curriculum levels compare like with like.
+The validation curves behind the learning-curve figure are flown by :mod:`racebench.reporting.validation`.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import re
 from dataclasses import dataclass
-from functools import partial
 from pathlib import Path
 
-import gymnasium as gym
 import numpy as np
 import pandas as pd
 
-from racebench.agents.loading import load_agent
-from racebench.agents.trust import own_policy_trust
 from racebench.envs.registration import DENSITIES, GATE_SHIFTS
-from racebench.evaluation.protocol import TRACK_ORDER, VALIDATION_SEED_BASE, split_env_id
+from racebench.evaluation.protocol import TRACK_ORDER, env_id_of, split_env_id
 from racebench.evaluation.results import load_records
-from racebench.evaluation.rollout import run_lockstep
 from racebench.evaluation.statistics import holm_adjust, paired_outcomes, trend_test, wilson_interval
-from racebench.evaluation.worker import SingleTorchThread
 from racebench.reporting.tables import TRACK_NAMES, render
+from racebench.reporting.validation import RUN_FOLDER, learning_curves
 from racebench.utils.files import atomic_write
 
 CAMPAIGN = Path("baselines/experiments/campaign-4m")
@@ -80,7 +72,6 @@ TABLE_II_ROWS: tuple[tuple[str, str], ...] = (
 )  # fmt: skip
 TABLE_III_ROWS: tuple[str, ...] = ("vision-ppo", "vision-no-gru", "vision-no-avoid", "vision-one-step")
 ALPHA = 0.05
-_RUN = re.compile(r"^(?P<config>.+)-(?P<track>S|J|Circle)-seed(?P<seed>\d+)$")
 
 
 @dataclass(frozen=True)
@@ -98,7 +89,7 @@ def discover_sources(root: str | Path = ".", campaign: str | Path = CAMPAIGN) ->
     root = Path(root)
     sources = []
     for run in sorted((root / campaign).glob("*-seed*")):
-        match = _RUN.match(run.name)
+        match = RUN_FOLDER.match(run.name)
         if match and (run / "eval" / "summary.csv").is_file():
             sources.append(Source(match["config"], run / "eval", int(match["seed"]), match["track"]))
     for seed in (1, 2):  # vision-ppo on S, training seeds 1-2: the A/B runs (same config, budget, env version)
@@ -188,10 +179,6 @@ def cell(episodes: pd.DataFrame, method: str, env_id: str) -> Cell | None:
     )
 
 
-def _main_id(track: str, variant: str = "default") -> str:
-    return f"RaceObs-{track}-v0" if variant == "default" else f"RaceObs-{track}-{variant}-v0"
-
-
 def _csv_row(table: str, row: str, track: str, variant: str, found: Cell | None, paper_sr, paper_lt) -> dict:
     return {
         "table": table, "row": row, "track": track, "variant": variant,
@@ -211,7 +198,7 @@ def table_ii(episodes: pd.DataFrame) -> tuple[pd.DataFrame, list[dict]]:
         line = {}
         for part in ("LT [s]", "SR [%]"):
             for track in TRACK_ORDER:
-                found = cell(episodes, method, _main_id(track))
+                found = cell(episodes, method, env_id_of(track))
                 lap = part == "LT [s]"
                 paper = (PAPER_LAP_TIME if lap else PAPER_SUCCESS).get(method, {}).get(track)
                 line[f"{part} {TRACK_NAMES[track]}"] = "–" if found is None else found.text(paper, lap)
@@ -228,7 +215,7 @@ def table_iii(episodes: pd.DataFrame) -> tuple[pd.DataFrame, list[dict]]:
     for method in TABLE_III_ROWS:
         line = {}
         for track in TRACK_ORDER:
-            found = cell(episodes, method, _main_id(track))
+            found = cell(episodes, method, env_id_of(track))
             paper = PAPER_SUCCESS[method][track]
             line[f"SR [%] {TRACK_NAMES[track]}"] = "–" if found is None else found.text(paper)
             rows.append(_csv_row("III", method, track, "default", found, paper, None))
@@ -244,7 +231,7 @@ def table_iv(episodes: pd.DataFrame, method: str = "vision-ppo") -> tuple[pd.Dat
     for label, variant in variants:
         line = {}
         for track in TRACK_ORDER:
-            found = cell(episodes, method, _main_id(track, variant))
+            found = cell(episodes, method, env_id_of(track, variant))
             paper = PAPER_VARIANTS[variant][track]
             line[f"SR [%] {TRACK_NAMES[track]}"] = "–" if found is None else found.text(paper)
             rows.append(_csv_row("IV", method, track, variant, found, paper, None))
@@ -274,7 +261,7 @@ def difference_claim(episodes: pd.DataFrame, better: str, worse: str) -> Claim:
     """``better`` > ``worse`` on every track's main id: directions per track and seed pair, pooled McNemar p."""
     directions, evidence, only_better, only_worse = [], [], 0, 0
     for track in TRACK_ORDER:
-        env_id = _main_id(track)
+        env_id = env_id_of(track)
         ours, theirs = cell(episodes, better, env_id), cell(episodes, worse, env_id)
         if ours is None or theirs is None:
             return Claim(f"{better} > {worse}", f"{track}: missing runs", "exact McNemar, pooled", None)
@@ -306,7 +293,7 @@ def one_step_fails(episodes: pd.DataFrame, method: str = "vision-one-step") -> C
     """``method`` fails on every main id: success rate < 10 % and its Wilson upper bound < 20 % on each track."""
     evidence, holds = [], True
     for track in TRACK_ORDER:
-        rows = episodes[(episodes["method"] == method) & (episodes["env_id"] == _main_id(track))]
+        rows = episodes[(episodes["method"] == method) & (episodes["env_id"] == env_id_of(track))]
         if rows.empty:
             return Claim(f"{method} fails", f"{track}: missing run", "success < 10 %, Wilson upper < 20 %", None,
                          verdict="not tested (missing runs)")  # fmt: skip
@@ -329,7 +316,7 @@ def trend_claim(episodes: pd.DataFrame, kind: str, method: str = "vision-ppo") -
     for track in TRACK_ORDER:
         scores, successes, trials, rates = [], [], [], []
         for score, variant in levels:
-            rows = episodes[(episodes["method"] == method) & (episodes["env_id"] == _main_id(track, variant))]
+            rows = episodes[(episodes["method"] == method) & (episodes["env_id"] == env_id_of(track, variant))]
             rows = rows[rows["training_seed"] == rows["training_seed"].min()] if len(rows) else rows
             if rows.empty:
                 return Claim(f"{method}: success falls with {what}", f"{track} {variant}: missing",
@@ -437,112 +424,6 @@ def budget_note(root: Path, campaign: Path = CAMPAIGN) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ validation curve
-def validation_curve(
-    run_dir: str | Path, every: int = 1_000_000, episodes: int = 100, trust_code: bool = False
-) -> pd.DataFrame:
-    """Fly a run's periodic checkpoints nearest each multiple of ``every`` steps on ``episodes`` validation scenes of
-    its track's main id (deterministic actions, ray-cast depth); write and return ``validation_curve.csv``.
-
-    The checkpoints are the periodic ones under ``checkpoints/`` and, once the run has finished, its final model
-    (at ``summary.json``'s timesteps). Columns: timesteps (of the checkpoint), episodes, successes, success_rate,
-    mean_return (the training return logged nearest that step in ``progress.csv``). Incremental: the rows already
-    in the file are kept and only the missing multiples the run has reached are flown, so a run that spans sessions
-    adds its points as it goes (a stopped run's checkpoint short of the next multiple never stands in for it). A
-    checkpoint is unpickled only if the run folder wrote it (its ``written.json``) or with ``trust_code``.
-    """
-    run_dir = Path(run_dir)
-    match = _RUN.match(run_dir.name)
-    if match is None:
-        raise ValueError(f"{run_dir}: not a sweep run folder <config>-<track>-seed<k>")
-    found = {}
-    for path in (run_dir / "checkpoints").glob("*_steps.zip"):
-        steps = int(re.search(r"_(\d+)_steps\.zip$", path.name)[1])
-        found[steps] = path
-    final, summary = run_dir / f"{match['config']}-{match['track']}.zip", run_dir / "summary.json"
-    if final.is_file() and summary.is_file():  # a finished run's final model is its checkpoint at its last step
-        found.setdefault(int(json.loads(summary.read_text())["timesteps"]), final)
-    path = run_dir / "validation_curve.csv"
-    rows = pd.read_csv(path).to_dict("records") if path.is_file() else []
-    if not found and not rows:
-        raise ValueError(f"{run_dir}: no periodic checkpoints under checkpoints/")
-    progress = pd.read_csv(run_dir / "progress.csv")
-    env_id = _main_id(match["track"])
-    seeds = [VALIDATION_SEED_BASE + i for i in range(episodes)]
-    done = {round(row["timesteps"] / every) for row in rows}
-    for target in range(every, max(found, default=0) + every // 2, every):
-        steps = min(found, key=lambda s: abs(s - target))
-        # A grid checkpoint sits at the multiple or up to a rollout past it (below it only by the grid's rounding
-        # to whole vector steps); one well before it is a stopped run's, which has not reached that point yet.
-        if not -(every // 100) <= steps - target <= every // 4 or target // every in done:
-            continue
-        agent = load_agent(str(found[steps]), trust_code=own_policy_trust(run_dir, found[steps], trust_code))
-        results: list[dict] = []
-        with SingleTorchThread():
-            run_lockstep(agent, [(env_id, s) for s in seeds], partial(_raycast_env, obs_mode=agent.obs_mode),
-                         lambda _e, _s, result, _f, kept=results: kept.append(result),
-                         width=min(64, episodes))  # fmt: skip
-        errors = [r for r in results if r.get("error")]
-        if errors:  # an episode the agent could not fly is no failure to count: the curve would lie
-            raise ValueError(f"{found[steps]}: {len(errors)} of {len(results)} validation episodes ended in an "
-                             f"error, first: {errors[0]['error']}")  # fmt: skip
-        near = progress.iloc[(progress["timesteps"] - steps).abs().argsort()[:1]]
-        successes = sum(bool(r.get("success")) for r in results)
-        rows.append({"timesteps": steps, "episodes": len(results), "successes": successes,
-                     "success_rate": successes / len(results),
-                     "mean_return": float(near["mean_return"].iloc[0])})  # fmt: skip
-    columns = ["timesteps", "episodes", "successes", "success_rate", "mean_return"]
-    curve = pd.DataFrame(rows, columns=columns).sort_values("timesteps", ignore_index=True)
-    atomic_write(path, curve.to_csv(index=False))
-    return curve
-
-
-def _raycast_env(env_id: str, obs_mode: str):
-    return gym.make(env_id, obs_mode=obs_mode, renderer="raycast")  # the observation the agent was trained on
-
-
-def learning_curves(root: Path, out: Path, campaign: Path = CAMPAIGN) -> pd.DataFrame | None:
-    """One CSV and one figure (a panel per track) of every campaign run's validation success and training return."""
-    frames = []
-    for path in sorted((root / campaign).glob("*-seed*/validation_curve.csv")):
-        match = _RUN.match(path.parent.name)
-        frame = pd.read_csv(path)
-        frame.insert(0, "run", path.parent.name)
-        frame.insert(1, "config", match["config"])
-        frame.insert(2, "track", match["track"])
-        frame.insert(3, "training_seed", int(match["seed"]))
-        frames.append(frame)
-    if not frames:
-        return None
-    curves = pd.concat(frames, ignore_index=True)
-    atomic_write(out / "learning_curves.csv", curves.to_csv(index=False))
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 3, figsize=(12, 6), sharex=True, squeeze=False)
-    for col, track in enumerate(TRACK_ORDER):
-        for config, group in curves[curves["track"] == track].groupby("config", sort=True):
-            mean = group.groupby("timesteps")[["success_rate", "mean_return"]].mean()
-            axes[0][col].plot(mean.index / 1e6, 100 * mean["success_rate"], marker="o", label=config)
-            axes[1][col].plot(mean.index / 1e6, mean["mean_return"], marker="o", label=config)
-        if not (curves["track"] == track).any():
-            for row in (0, 1):
-                axes[row][col].text(0.5, 0.5, "no run committed yet", ha="center", va="center",
-                                    transform=axes[row][col].transAxes, color="grey")  # fmt: skip
-        axes[0][col].set_ylim(0, 100)
-        axes[0][col].set_title(TRACK_NAMES[track])
-        axes[1][col].set_xlabel("environment steps [M]")
-    axes[0][0].set_ylabel("validation success [%]")
-    axes[1][0].set_ylabel("training return")
-    axes[0][-1].legend(fontsize=7)
-    fig.tight_layout()
-    (out / "figures").mkdir(parents=True, exist_ok=True)
-    fig.savefig(out / "figures" / "learning_curves.png", dpi=150, metadata={"Software": None})
-    plt.close(fig)
-    return curves
-
-
 # ------------------------------------------------------------------------------------------------------- output
 def caption(which: str, episodes: pd.DataFrame) -> str:
     """A table's caption: what it shows, the budget and the episodes per cell."""
@@ -573,11 +454,11 @@ def at_a_glance(episodes: pd.DataFrame) -> str:
     method (highest mean own-track success of the teacher-student rows) and the privileged reference, per track."""
 
     def track_cells(method: str) -> list[str]:
-        found = [cell(episodes, method, _main_id(track)) for track in TRACK_ORDER]
+        found = [cell(episodes, method, env_id_of(track)) for track in TRACK_ORDER]
         return ["–" if c is None else f"{c.text()} %, {c.text(lap=True)} s" for c in found]
 
     def mean_rate(method: str) -> float:
-        found = [cell(episodes, method, _main_id(track)) for track in TRACK_ORDER]
+        found = [cell(episodes, method, env_id_of(track)) for track in TRACK_ORDER]
         return sum(c.success_rate for c in found if c is not None) / len(TRACK_ORDER)
 
     best = max(("vision-distill", "vision-distill-ppo"), key=mean_rate)
@@ -636,7 +517,7 @@ def write_report(
     block = at_a_glance(episodes)
     atomic_write(out / "at_a_glance.md", block)
     written += [out / "claims.md", out / "at_a_glance.md"]
-    if learning_curves(root, out) is not None:
+    if learning_curves(root, out, CAMPAIGN) is not None:
         written += [out / "learning_curves.csv", out / "figures" / "learning_curves.png"]
     if readme is not None and Path(readme).is_file():
         text = Path(readme).read_text()

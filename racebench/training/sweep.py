@@ -73,7 +73,7 @@ from racebench.agents.trust import own_policy_trust, record_written, vecnormaliz
 from racebench.evaluation.evaluator import Evaluator
 from racebench.evaluation.protocol import EVAL_SEED_BASE, SUITES, split_env_id
 from racebench.evaluation.ray_backend import RayOptions, connected
-from racebench.reporting.paper import validation_curve
+from racebench.reporting.validation import validation_curve
 from racebench.sim.track import BUILTIN_TRACKS
 from racebench.training.callbacks import TrainingInterrupted
 from racebench.training.config import BASELINES
