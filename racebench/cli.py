@@ -277,9 +277,7 @@ def _plot(args: argparse.Namespace) -> int:
             without = ", ".join(str(folder) for folder in folders if folder not in sources)
             log.warning(f"no saved trajectories in {without}: not in the track figure")
         try:
-            written.append(
-                plots.plot_track_3d(sources, args.track_env, out / f"track_{args.track_env}.{fmt}", dpi=dpi)
-            )
+            written.append(plots.plot_track_3d(sources, args.track_env, out / f"track_{args.track_env}.{fmt}", dpi=dpi))
         except ValueError as exc:
             raise SystemExit(f"racebench plot: {exc}") from exc
     for path in written:

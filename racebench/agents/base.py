@@ -34,14 +34,12 @@ BUILTIN_PRIVILEGED: dict[str, bool] = {
 BUILTIN_VERSIONS: dict[str, int] = {"random": 1, "hover": 1, "planner": 1, "planner-fast": 3, "follow": 1}
 
 
-
 class AgentLoadError(ValueError):
     """An agent spec could not be turned into an agent; the message names the spec and the reason."""
 
 
 class UntrustedCodeError(AgentLoadError):
     """Loading the agent would run code from an untrusted file and ``trust_code`` was not given."""
-
 
 
 @runtime_checkable

@@ -36,7 +36,6 @@ def resample(polyline: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarr
     return points, s
 
 
-
 def _free_space(scene, radius: float = 0.0) -> _FreeSpace:
     """The corridor search's clearance queries for ``scene`` (the whole arena as its volume)."""
     lo, hi = np.asarray(scene.arena_low, dtype=float), np.asarray(scene.arena_high, dtype=float)
@@ -245,7 +244,6 @@ def _arc_length_spline(points: np.ndarray, spacing: float) -> tuple[np.ndarray, 
     tangent = d1 / speed
     curvature = (d2 - np.sum(d2 * tangent, axis=1, keepdims=True) * tangent) / speed**2
     return spline(u_s), s, tangent, curvature
-
 
 
 def gate_crossings(path: np.ndarray, gates) -> list[int]:

@@ -33,7 +33,6 @@ def speed_profile(
     return v
 
 
-
 def minimum_time_speeds(
     arc: np.ndarray,
     curvature: np.ndarray,

@@ -48,7 +48,6 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
 }
 
 
-
 @dataclass(frozen=True)
 class PolicyIdentity:
     """What exactly an agent spec stands for: the key of every evaluation record it produces.

@@ -636,5 +636,3 @@ class RaceEnv(gym.Env):
     def __copy__(self) -> Any:
         """Refuse shallow copies (see :attr:`_NO_COPY`)."""
         raise TypeError(self._NO_COPY)
-
-

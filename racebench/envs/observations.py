@@ -17,7 +17,6 @@ VELOCITY_SCALE = 10.0  # m/s per unit
 STATE_LIMIT = 5.0  # |state| is clipped here: 50 m, 50 m/s, 5x the max body rate
 
 
-
 def depth_to_uint8(depth: np.ndarray) -> np.ndarray:
     """Float depth ``(..., 1, H, W)`` in [0, 1] → ``(..., H, W, 1)`` uint8 in [0, 255], rounded to nearest.
 
@@ -42,7 +41,6 @@ def state_space() -> spaces.Box:
     high = np.full(STATE_DIM, STATE_LIMIT, dtype=np.float32)
     high[10:14] = 1.0
     return spaces.Box(-high, high, dtype=np.float32)
-
 
 
 @njit(cache=True, error_model="numpy")  # numpy's division semantics (x / 0 = inf), as the array version had

@@ -48,8 +48,6 @@ Labeller = Callable[[], Any]
 GYM_INFOS, SB3_INFOS = "gym", "sb3"  # info formats: Gymnasium's dict of arrays with "_key" masks; SB3's list of dicts
 
 
-
-
 # ------------------------------------------------------------------ core
 class EnvBatch:
     """Envs of one process stepped together; with ``renderer="raycast"`` all their depth images come from

@@ -267,8 +267,7 @@ class Evaluator:
                 initargs=(self.agent_spec, self.renderer, self.trust_code, 1, self.agent_kwargs, self.vecnormalize),
             ) as pool:
                 futures = {
-                    pool.submit(fly, task, self.writer, self.width, self.save_trajectories): len(task)
-                    for task in tasks
+                    pool.submit(fly, task, self.writer, self.width, self.save_trajectories): len(task) for task in tasks
                 }
                 for future in as_completed(futures):
                     self.done.update(name_of(r) for r in future.result())
@@ -280,5 +279,3 @@ class Evaluator:
         asked = {(e, s) for e in self.env_ids for s in self.seeds}
         self.selected = episodes[[(e, s) in asked for e, s in zip(episodes["env_id"], episodes["seed"], strict=True)]]
         return summarize(self.selected)
-
-

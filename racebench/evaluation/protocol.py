@@ -30,9 +30,7 @@ SUITES["paper"] = SUITES["main"] + SUITES["density"] + SUITES["gates"]
 SEED_SET = "public"
 
 
-
 _ID = re.compile(r"^RaceObs-(?P<track>[^-]+)(?:-(?P<variant>.+))?-v0$")
-
 
 
 def eval_seeds(episodes: int) -> list[int]:

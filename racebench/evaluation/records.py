@@ -223,6 +223,7 @@ def env_facts(env_id: str) -> dict[str, Any]:
 
 def validate_record(record: Any, file_name: str | None = None) -> dict[str, Any]:
     """Check one record (see the module docstring); return it, or raise :class:`InvalidRecordError`."""
+
     def bad(why: str) -> InvalidRecordError:
         return InvalidRecordError(why)
 

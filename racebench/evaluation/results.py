@@ -24,7 +24,6 @@ class MixedResultsError(ValueError):
 EPISODE_COLUMNS: tuple[str, ...] = RECORD_FIELDS  # episodes.csv: every record field
 
 
-
 def load_records(out_dir: str | Path) -> pd.DataFrame:
     """Every valid record of ``out_dir`` (``records.jsonl``, shards of a running or killed evaluation, legacy
     ``records/*.json``) as a DataFrame with :data:`EPISODE_COLUMNS`.

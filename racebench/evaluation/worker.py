@@ -96,7 +96,6 @@ def fly(
     return written
 
 
-
 def torch_threads() -> int:
     """Torch threads for a process that steps envs and runs a policy in turn: one.
 

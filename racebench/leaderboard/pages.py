@@ -27,7 +27,6 @@ from racebench.reporting.plots import plot_track_3d
 PLOT_DPI = 130  # the trajectory figures are committed with the site: ~600 px wide PNGs
 
 
-
 def _page(title: str, body: str, css: str) -> str:
     return (
         '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'

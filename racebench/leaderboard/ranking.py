@@ -41,7 +41,6 @@ TIER_TEXT: dict[str, str] = {
 }
 
 
-
 def _esc(value: Any) -> str:
     return html.escape(str(value), quote=True)
 

@@ -28,9 +28,7 @@ _SEGMENT_STEP = 0.05  # sample spacing when proving a straight segment clear (m)
 _LEG_MARGIN = 1.0  # margin of the local grid around one leg before falling back to the whole arena (m)
 
 
-
 _SNAP_OFFSETS = np.stack(np.meshgrid(*[np.arange(-1, 3)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-
 
 
 # --------------------------------------------------------------------------- corridor search

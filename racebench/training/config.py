@@ -41,7 +41,6 @@ def baseline_path(name_or_path: str | Path) -> Path:
     return path
 
 
-
 def check_keys(path: str | Path, data: dict[str, Any], cls: type) -> None:
     """The checks every training config file shares: no key that ``cls`` (a config dataclass) lacks, a ``name``."""
     known = {f.name for f in fields(cls)}

@@ -60,7 +60,6 @@ def frozen_initial_policy(model: Any, path: str | Path) -> Any:
     return anchor
 
 
-
 def linear_schedule(start: float, end: float):
     """Learning rate decaying linearly from ``start`` to ``end`` over training (SB3 passes progress 1 → 0)."""
 

@@ -59,7 +59,14 @@ class RaceSB3VecEnv(VecEnv):
         try:
             mode = AutoresetMode.SAME_STEP
             self._backend = make_backend(
-                num_envs, num_processes, context, mode, SB3_INFOS, env_kwargs, probe, max_episode_steps,
+                num_envs,
+                num_processes,
+                context,
+                mode,
+                SB3_INFOS,
+                env_kwargs,
+                probe,
+                max_episode_steps,
                 teacher_factory(teacher),
             )
         finally:

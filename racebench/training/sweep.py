@@ -332,7 +332,6 @@ def run_job(run: SweepRun) -> dict[str, Any]:
             checkpoint, done = latest_checkpoint(run.out, run.config.name)
             steps = max(run.steps - done, 0)
         else:  # DAgger: its whole state after the last finished iteration, kept in the run folder
-
             done = completed_iterations(run.out) * run.config.steps_per_iteration
             checkpoint = run.out if resume_folder(run.out) is not None else None
             steps = max(run.steps - done, 0) if checkpoint is not None else run.steps
@@ -342,7 +341,6 @@ def run_job(run: SweepRun) -> dict[str, Any]:
         )  # fmt: skip
     summary = json.loads(summary_path.read_text())
     if run.validation_every:  # incremental: only the multiples not yet in validation_curve.csv are flown
-
         validation_curve(run.out, run.validation_every, run.validation_episodes, run.trust_code)
     evaluated = summary["checkpoint"]
     if run.evaluate_policy_only and hasattr(run.config, "n_steps"):
