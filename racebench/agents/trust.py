@@ -45,6 +45,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "1499eb28f37fe2c3179aea4008452f404ac4c33893779659c6a5b582968e6703": "vision-ppo-J/vision-ppo-J.zip",
     "22caeea1d89e61b0de28e6f3392b8911e94647bd7725c4f162a2f9473e4e8bde": "vision-ppo-Circle/vision-ppo-Circle.zip",
     "1c297ec8d07ba5cdb8b77aacd8be89bd68cc4b43ecd869a1f6a7f4e800aebb12": "state-ppo-S/state-ppo-S.zip",
+    "de4138705b1c38955662cd98a4230f8fe281e61abc8834d1dff72dbca0b59b6a": "state-ppo-J/state-ppo-J.zip",
 }
 
 
