@@ -184,7 +184,7 @@ def test_the_committed_entries_are_methods_with_descriptions() -> None:
     assert {e.name for e in entries.values() if e.complete and not e.privileged} == {
         "hover", "vision-distill", "vision-distill-ppo", "vision-ppo"
     }  # fmt: skip
-    assert entries["vision-ppo"].tracks == ("S", "Circle", "J") and entries["state-ppo"].tracks == ("S",)
+    assert entries["vision-ppo"].tracks == ("S", "Circle", "J") and entries["state-ppo"].tracks == ("S", "J")
     for entry in entries.values():
         assert entry.meta["description"].strip() and "\n" not in entry.meta["description"].strip()
         steps, wall = entry.budget()
