@@ -240,3 +240,20 @@ def test_validation_episodes_that_error_are_refused(tmp_path: Path, monkeypatch:
     with pytest.raises(ValueError, match="2 of 2 validation episodes ended in an error, first: .*wrong observation"):
         validation.validation_curve(run, every=1_000_000, episodes=2, trust_code=True)
     assert not (run / "validation_curve.csv").exists()
+
+
+def test_validation_points_flown_before_an_error_are_kept(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The 1 M point is flown and written; the 2 M checkpoint's agent fails: the 1 M row stays on disk."""
+    from racebench.reporting import validation
+
+    class Broken(_StateHover):
+        def act_batch(self, observations: list) -> np.ndarray:
+            raise TypeError("wrong observation")
+
+    run = _one_checkpoint_run(tmp_path)
+    (run / "checkpoints" / "state-ppo_1998848_steps.zip").write_bytes(b"stands for a checkpoint")
+    agents = iter([_StateHover(), Broken()])
+    monkeypatch.setattr(validation, "load_agent", lambda *_a, **_k: next(agents))
+    with pytest.raises(ValueError, match="ended in an error"):
+        validation.validation_curve(run, every=1_000_000, episodes=2, trust_code=True)
+    assert pd.read_csv(run / "validation_curve.csv")["timesteps"].tolist() == [999_424]

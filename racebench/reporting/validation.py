@@ -82,6 +82,11 @@ def validation_curve(
         rows.append({"timesteps": steps, "episodes": len(results), "successes": successes,
                      "success_rate": successes / len(results),
                      "mean_return": float(near["mean_return"].iloc[0])})  # fmt: skip
+        _write_curve(path, rows)  # each point as it is flown: an interrupted call keeps the points it finished
+    return _write_curve(path, rows)
+
+
+def _write_curve(path: Path, rows: list[dict]) -> pd.DataFrame:
     columns = ["timesteps", "episodes", "successes", "success_rate", "mean_return"]
     curve = pd.DataFrame(rows, columns=columns).sort_values("timesteps", ignore_index=True)
     atomic_write(path, curve.to_csv(index=False))
