@@ -182,9 +182,9 @@ def test_the_committed_entries_are_methods_with_descriptions() -> None:
     checkpoints = {p.policy for e in entries.values() for p in e.policies.values() if p.kind == "sb3"}
     assert checkpoints <= {f"baselines/checkpoints/{p}" for p in TRUSTED_CHECKPOINTS.values()}
     assert {e.name for e in entries.values() if e.complete and not e.privileged} == {
-        "hover", "vision-distill", "vision-distill-ppo", "vision-ppo"
+        "hover", "vision-distill", "vision-distill-ppo", "vision-ppo", "state-ppo"
     }  # fmt: skip
-    assert entries["vision-ppo"].tracks == ("S", "Circle", "J") and entries["state-ppo"].tracks == ("S", "J")
+    assert entries["vision-ppo"].tracks == ("S", "Circle", "J") and entries["state-ppo"].tracks == ("S", "Circle", "J")
     for entry in entries.values():
         assert entry.meta["description"].strip() and "\n" not in entry.meta["description"].strip()
         steps, wall = entry.budget()
