@@ -194,7 +194,7 @@ def _ranking_table(table_id: str, rows: list[Row], ranked: bool, bold: dict[str,
             tds.append(f'<td class="{klass}">{_sr_html(cell)}{lap}</td>')
         tds.append(f'<td class="num">{_cross_html(entry)}</td>')
         tds.append(f"<td>{_teacher_html(entry)}</td>")
-        tds.append(f'<td class="num">{_budget_html(entry)}</td>')
+        tds.append(f'<td class="num budget">{_budget_html(entry)}</td>')
         seeds = ", ".join(sorted({c.seed_set for c in row.cells.values()})) or "–"
         tds.append(f"<td>{_esc(entry.meta['obs_mode'])}, {_esc(entry.kind)}<br><small>{_esc(seeds)} seeds</small></td>")
         body.append("<tr>" + "".join(tds) + "</tr>")

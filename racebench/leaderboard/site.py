@@ -58,6 +58,7 @@ table { border-collapse: collapse; margin: 0.8rem 0; font-size: 0.92rem; }
 th, td { border: 1px solid #d0d7de; padding: 0.3rem 0.55rem; text-align: left; vertical-align: top; }
 th { background: #f6f8fa; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
+td.budget { white-space: normal; min-width: 6rem; }  /* the hardware line would push the table past the page */
 td.key { font-weight: 600; background: #f3f0ff; }
 table.ranking td:nth-child(2) { min-width: 18rem; }
 td.best { font-weight: 700; background: #eafbea; }
