@@ -15,6 +15,7 @@ from racebench.evaluation.statistics import holm_adjust, trend_test
 from racebench.reporting.paper import (
     README_BEGIN,
     README_END,
+    at_a_glance,
     cell,
     judge_claims,
     replace_readme_block,
@@ -126,6 +127,22 @@ def test_a_cell_of_several_training_seeds_shows_their_mean_and_range() -> None:
     assert found.text(100) == "80 (3 seeds 70–90) · paper 100"
     one = cell(frame[frame["training_seed"] == 0], "m", "RaceObs-S-v0")
     assert one.text() == "70 [60–78]" and one.text(3.4, lap=True) == "4.00 · paper 3.4"  # Wilson 70/100
+
+
+def test_the_readme_block_sets_each_trained_row_below_the_papers() -> None:
+    """The paper's row comes first, then ours; a method that finished no lap on a track says so instead of a time."""
+    rows = [episodes_of(m, f"RaceObs-{t}-v0", k) for m, k in (("vision-ppo", 70), ("vision-distill", 80),
+            ("vision-distill-ppo", 60), ("planner-fast", 95)) for t in TRACKS]  # fmt: skip
+    rows += [episodes_of("state-ppo", f"RaceObs-{t}-v0", k) for t, k in (("S", 45), ("Circle", 0), ("J", 39))]
+    lines = at_a_glance(pd.concat(rows, ignore_index=True)).splitlines()
+    names = [line.split(" | ")[0].removeprefix("| ") for line in lines[2:8]]
+    assert names == [
+        "paper: vision-based (ours), 10 trials", "`vision-ppo`: the paper's method, trained here",
+        "paper: state-based (ours), 10 trials", "`state-ppo`: the paper's method without depth, trained here",
+        "`vision-distill`: best racebench method", "`planner-fast` (privileged reference)",
+    ]  # fmt: skip
+    assert lines[4].split(" | ")[1:4] == ["30 %, 3.5 s", "20 %, 3.8 s", "30 %, 3.1 s"]  # the paper's Table II
+    assert lines[5].split(" | ")[1:4] == ["45 [36–55] %, 4.00 s", "0 [0–4] %, no lap", "39 [30–49] %, 4.00 s"]
 
 
 def test_the_readme_block_is_replaced_between_its_markers_only() -> None:

@@ -443,6 +443,7 @@ def caption(which: str, episodes: pd.DataFrame) -> str:
 
 METHOD_NOTES: dict[str, tuple[str, str]] = {  # budget per track, the command that reproduces it
     "vision-ppo": ("4 M PPO steps", "`racebench sweep baselines/sweeps/campaign-4m.yaml`"),
+    "state-ppo": ("4 M PPO steps", "`racebench sweep baselines/sweeps/campaign-4m.yaml`"),
     "vision-distill": ("0.5 M DAgger steps", "`racebench sweep baselines/sweeps/teacher-student.yaml`"),
     "vision-distill-ppo": ("0.5 M DAgger + 2 M PPO steps", "`racebench sweep baselines/sweeps/teacher-student.yaml`"),
     "planner-fast": ("none (privileged: reads the true scene)", "`racebench evaluate --agent planner-fast`"),
@@ -450,22 +451,35 @@ METHOD_NOTES: dict[str, tuple[str, str]] = {  # budget per track, the command th
 
 
 def at_a_glance(episodes: pd.DataFrame) -> str:
-    """The README's results block: the paper's method as trained here beside the paper's numbers, the best racebench
-    method (highest mean own-track success of the teacher-student rows) and the privileged reference, per track."""
+    """The README's results block: the paper's method and its state-based baseline as trained here, each below the
+    paper's numbers, the best racebench method (highest mean own-track success of the teacher-student rows) and the
+    privileged reference, per track."""
 
     def track_cells(method: str) -> list[str]:
         found = [cell(episodes, method, env_id_of(track)) for track in TRACK_ORDER]
-        return ["–" if c is None else f"{c.text()} %, {c.text(lap=True)} s" for c in found]
+        return ["–" if c is None else f"{c.text()} %, {lap_text(c.text(lap=True))}" for c in found]
+
+    def lap_text(lap: str) -> str:
+        return "no lap" if lap == "–" else f"{lap} s"
+
+    def paper_cells(method: str) -> list[str]:
+        return [f"{PAPER_SUCCESS[method][t]} %, {PAPER_LAP_TIME[method][t]} s" for t in TRACK_ORDER]
 
     def mean_rate(method: str) -> float:
         found = [cell(episodes, method, env_id_of(track)) for track in TRACK_ORDER]
         return sum(c.success_rate for c in found if c is not None) / len(TRACK_ORDER)
 
     best = max(("vision-distill", "vision-distill-ppo"), key=mean_rate)
-    paper = [f"{PAPER_SUCCESS['vision-ppo'][t]} %, {PAPER_LAP_TIME['vision-ppo'][t]} s" for t in TRACK_ORDER]
+
     rows = [
-        ("paper: vision-based (ours), 10 trials", paper, "100 M PPO steps", "–"),
+        ("paper: vision-based (ours), 10 trials", paper_cells("vision-ppo"), "100 M PPO steps", "–"),
         ("`vision-ppo`: the paper's method, trained here", track_cells("vision-ppo"), *METHOD_NOTES["vision-ppo"]),
+        ("paper: state-based (ours), 10 trials", paper_cells("state-ppo"), "100 M PPO steps", "–"),
+        (
+            "`state-ppo`: the paper's method without depth, trained here",
+            track_cells("state-ppo"),
+            *METHOD_NOTES["state-ppo"],
+        ),
         (f"`{best}`: best racebench method", track_cells(best), *METHOD_NOTES[best]),
         ("`planner-fast` (privileged reference)", track_cells("planner-fast"), *METHOD_NOTES["planner-fast"]),
     ]
