@@ -457,10 +457,10 @@ def at_a_glance(episodes: pd.DataFrame) -> str:
 
     def track_cells(method: str) -> list[str]:
         found = [cell(episodes, method, env_id_of(track)) for track in TRACK_ORDER]
-        return ["–" if c is None else f"{c.text()} %, {lap_text(c.text(lap=True))}" for c in found]
+        return ["–" if c is None else f"{c.text()} %, {lap_text(c)}" for c in found]
 
-    def lap_text(lap: str) -> str:
-        return "no lap" if lap == "–" else f"{lap} s"
+    def lap_text(c: Cell) -> str:
+        return f"{c.text(lap=True)} s" if math.isfinite(c.lap_time) else "no lap"
 
     def paper_cells(method: str) -> list[str]:
         return [f"{PAPER_SUCCESS[method][t]} %, {PAPER_LAP_TIME[method][t]} s" for t in TRACK_ORDER]
@@ -470,7 +470,6 @@ def at_a_glance(episodes: pd.DataFrame) -> str:
         return sum(c.success_rate for c in found if c is not None) / len(TRACK_ORDER)
 
     best = max(("vision-distill", "vision-distill-ppo"), key=mean_rate)
-
     rows = [
         ("paper: vision-based (ours), 10 trials", paper_cells("vision-ppo"), "100 M PPO steps", "–"),
         ("`vision-ppo`: the paper's method, trained here", track_cells("vision-ppo"), *METHOD_NOTES["vision-ppo"]),
