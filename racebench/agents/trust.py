@@ -47,6 +47,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "1c297ec8d07ba5cdb8b77aacd8be89bd68cc4b43ecd869a1f6a7f4e800aebb12": "state-ppo-S/state-ppo-S.zip",
     "de4138705b1c38955662cd98a4230f8fe281e61abc8834d1dff72dbca0b59b6a": "state-ppo-J/state-ppo-J.zip",
     "5a0cb6a1746be02d978186082627f4a558f5463faed3cf3f9e869bf3b2366df3": "state-ppo-Circle/state-ppo-Circle.zip",
+    "fee881723ef52c1a8439d4a27296da5d8e542b256ee43117300cc9e08ee159de": "vision-com-S/vision-com-S.zip",
 }
 
 
