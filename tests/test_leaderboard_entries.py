@@ -173,7 +173,8 @@ def test_the_committed_entries_are_methods_with_descriptions() -> None:
     board = ROOT / DEFAULT_LEADERBOARD
     entries = {e.name: e for e in load_entries(board)}
     assert set(entries) == {
-        "planner", "planner-fast", "follow", "hover", "vision-distill", "vision-distill-ppo", "vision-ppo", "state-ppo"
+        "planner", "planner-fast", "follow", "hover", "vision-distill", "vision-distill-ppo", "vision-ppo", "state-ppo",
+        "vision-com",
     }  # fmt: skip
     for name in ("planner", "planner-fast", "follow", "hover"):
         assert entries[name].meta["policies"] == {"all": {"policy": f"builtin:{name}", "records": [f"results/{name}"]}}
@@ -192,6 +193,7 @@ def test_the_committed_entries_are_methods_with_descriptions() -> None:
         for policy in entry.policies.values():
             assert policy.sha256 == policy_sha256(policy.policy, ROOT)
             assert policy.records and all(r["policy_sha256"] == policy.sha256 for r in policy.records)
+    assert entries["vision-com"].tracks == ("S",)  # unranked until campaign runs 7-8 add J and Circle
     assert entries["state-ppo"].policies["S"].budget_source == "summary.json"
     assert entries["vision-distill"].privileged_teacher and not entries["vision-ppo"].privileged_teacher
 
