@@ -48,6 +48,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "de4138705b1c38955662cd98a4230f8fe281e61abc8834d1dff72dbca0b59b6a": "state-ppo-J/state-ppo-J.zip",
     "5a0cb6a1746be02d978186082627f4a558f5463faed3cf3f9e869bf3b2366df3": "state-ppo-Circle/state-ppo-Circle.zip",
     "fee881723ef52c1a8439d4a27296da5d8e542b256ee43117300cc9e08ee159de": "vision-com-S/vision-com-S.zip",
+    "c54280abc7c1fd055f210dd02464f251a548df6a5cbd116cf6fc427829ef45a9": "vision-com-J/vision-com-J.zip",
 }
 
 
