@@ -9,7 +9,7 @@ run in the campaign clone)::
     racebench paper-tables
 
 It copies the run's small files, ``eval/`` and (seed 0) ``policy/`` to ``baselines/experiments/campaign-4m/<run>/``
-(never ``checkpoints/`` or ``tb/``: resume states live on their own ref, see ``scripts/campaign_state.py``). For a
+(never ``checkpoints/`` or ``tb/``: a resume state committed there by ``scripts/campaign_state.py`` goes). For a
 seed-0 run it also writes ``baselines/checkpoints/<config>-<track>/``: the policy-only checkpoint, its evaluation,
 ``progress.csv``, ``config.yaml``, ``curriculum.json`` and a ``summary.json`` for the whole run (wall clock over all
 its sessions from ``progress.csv``, steps at the final level, final training success), and adds the checkpoint's
@@ -64,7 +64,7 @@ def policy_file(run_dir: Path, summary: dict) -> Path:
 def copy_run(run_dir: Path, dest: Path, with_policy: bool) -> None:
     """Replace ``dest`` by the run's committed part (small files, ``eval/``, and ``policy/`` when asked)."""
     if dest.exists():
-        shutil.rmtree(dest)  # drops any stale resume state a session committed here before the resume ref existed
+        shutil.rmtree(dest)  # drops a resume state committed here (campaign_state.py save): the run is done
     dest.mkdir(parents=True)
     for name in RUN_FILES:
         if (run_dir / name).is_file():

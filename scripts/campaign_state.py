@@ -1,47 +1,48 @@
-"""Job: keep the resume state of campaign runs that span sessions on one git ref outside ``main``'s history.
+"""Job: carry a campaign run that spans sessions to the next machine, through ``main`` itself.
 
-A 4 M-step campaign run takes longer than a session on 2 cores, so a new machine must be able to resume it. Its
-resume state (the newest periodic checkpoint with its Adam moments, about 15 MB, and the run folder's small files)
-committed to ``main`` would stay in ``main``'s history for good: ~15 MB for every session that ends mid-run, some
-360 MB over the campaign (``baselines/experiments/campaign-4m/README.md``). Here it goes to a parentless commit on
-one ref (default ``refs/heads/campaign-resume``) that each ``save`` replaces, so the repository holds one resume
-state at a time (the replaced one becomes unreachable and ``git gc`` drops it) and ``main`` none.
+A 4 M-step campaign run can take longer than what is left of a session on 2 cores, so a new machine must be able to
+resume it. Only ``main`` reaches a new machine: a state kept on a ref of its own (``refs/heads/campaign-resume``,
+this script's first design) was gone on 2026-12-06, and with it 0.46 M steps of run 8. So ``save`` stages the resume
+state in the main checkout, at the run folder's own path, for the session's last commit; ``main`` carries at most one
+state at a time (a new ``save`` unstages every other run's checkpoint, and ``scripts/campaign_finish.py`` replaces
+the run folder when the run ends), but git history keeps each committed one, about 15 MB: start a run only when it
+can finish within the session where possible, and save only when it cannot.
 
-Usage (run from the root of the campaign's clone; ``--repo`` is the repository that carries the ref)::
+Usage (``--root`` is the campaign clone; ``--repo`` the main checkout that commits the state)::
 
-    python scripts/campaign_state.py save --repo /work/main baselines/experiments/campaign-4m/<run>
-    python scripts/campaign_state.py restore --repo /work/main          # into this clone, before resuming
+    RUN=baselines/experiments/campaign-4m/<run>
+    python scripts/campaign_state.py save --repo /work/main --root /work/campaign /work/campaign/$RUN
+    git -C /work/main commit -m "campaign: run ... stopped at ... steps, resume state in main"
+    python scripts/campaign_state.py restore --repo /work/main --root /work/campaign   # on a new machine
     python scripts/campaign_state.py show --repo /work/main
 
 ``save`` stores, per run folder, ``config.yaml``, ``curriculum.json``, ``progress.csv``, ``written.json``,
 ``validation_curve.csv`` (those that exist) and the newest ``checkpoints/<prefix>_<n>_steps.zip`` with its
 ``<prefix>_vecnormalize_<n>_steps.pkl``: what ``racebench sweep`` needs to resume the run (``written.json`` keeps the
-checkpoint trusted: its bytes are unchanged). Fly the validation curve first (``racebench.reporting.paper.
-validation_curve``): only the newest checkpoint travels. ``restore`` writes the files back at the same paths and
-refuses to overwrite a file whose content differs.
+checkpoint trusted: its bytes are unchanged). Fly the validation curve first (``racebench.reporting.validation.
+validation_curve``): only the newest checkpoint travels. ``restore`` copies the committed state into the clone at the
+same paths and refuses to overwrite a file whose content differs.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import re
+import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
-DEFAULT_REF = "refs/heads/campaign-resume"
+CAMPAIGN = "baselines/experiments/campaign-4m"
 SMALL_FILES = ("config.yaml", "curriculum.json", "progress.csv", "written.json", "validation_curve.csv")
 _CHECKPOINT = re.compile(r"^(?P<prefix>.+)_(?P<steps>\d+)_steps\.zip$")
 
 
-def git(repo: Path, *args: str, env: dict[str, str] | None = None, data: bytes | None = None) -> bytes:
+def git(repo: Path, *args: str) -> str:
     """Run ``git -C repo args`` and return its stdout; a failure raises with git's message."""
-    done = subprocess.run(["git", "-C", str(repo), *args], input=data, capture_output=True,
-                          env={**os.environ, **(env or {})})  # fmt: skip
+    done = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True)
     if done.returncode != 0:
-        raise RuntimeError(f"git {' '.join(args[:2])}: {done.stderr.decode().strip()}")
+        raise RuntimeError(f"git {' '.join(args[:2])}: {done.stderr.strip()}")
     return done.stdout
 
 
@@ -63,42 +64,49 @@ def resume_files(run_dir: Path) -> list[Path]:
     return files + [statistics] if statistics.is_file() else files
 
 
-def save(repo: Path, root: Path, run_dirs: list[Path], ref: str = DEFAULT_REF, message: str = "") -> str:
-    """Store the resume state of ``run_dirs`` (paths under ``root``) as one parentless commit on ``ref``."""
+def tracked_state(repo: Path) -> list[str]:
+    """Paths (relative to ``repo``) of the resume checkpoints ``repo``'s index holds: the state ``main`` carries."""
+    listed = git(repo, "ls-files", "--", f"{CAMPAIGN}/*/checkpoints/*").splitlines()
+    return sorted(path for path in listed if (repo / path).is_file())
+
+
+def state_files(repo: Path) -> list[str]:
+    """The state ``main`` carries: each run folder with a committed checkpoint, its checkpoints and small files."""
+    checkpoints = tracked_state(repo)
+    runs = sorted({str(Path(path).parent.parent.as_posix()) for path in checkpoints})
+    small = [f"{run}/{name}" for run in runs for name in SMALL_FILES if (repo / run / name).is_file()]
+    return sorted(small + checkpoints)
+
+
+def save(repo: Path, root: Path, run_dirs: list[Path]) -> list[str]:
+    """Copy the resume state of ``run_dirs`` (paths under ``root``) into ``repo`` and stage it; unstage any other."""
     files = [path for run_dir in run_dirs for path in resume_files(run_dir)]
-    with tempfile.TemporaryDirectory() as tmp:
-        index = {"GIT_INDEX_FILE": str(Path(tmp) / "index")}
-        for path in files:
-            relative = path.resolve().relative_to(root.resolve()).as_posix()
-            blob = git(repo, "hash-object", "-w", "--no-filters", str(path.resolve())).decode().strip()
-            git(repo, "update-index", "--add", "--cacheinfo", f"100644,{blob},{relative}", env=index)
-        tree = git(repo, "write-tree", env=index).decode().strip()
-    text = message or "campaign resume state: " + ", ".join(run_dir.name for run_dir in run_dirs)
-    commit = git(repo, "commit-tree", tree, "-m", text).decode().strip()  # no parent: one state at a time
-    git(repo, "update-ref", ref, commit)
-    return commit
+    relative = [path.resolve().relative_to(root.resolve()).as_posix() for path in files]
+    for path in tracked_state(repo):  # one state at a time: older checkpoints of these runs and other runs' go
+        if path not in relative:
+            git(repo, "rm", "-q", "--cached", "--", path)
+            (repo / path).unlink()
+    for source, path in zip(files, relative, strict=True):
+        (repo / path).parent.mkdir(parents=True, exist_ok=True)
+        if source.resolve() != (repo / path).resolve():
+            shutil.copy2(source, repo / path)
+    git(repo, "add", "-f", "--", *relative)  # checkpoints/ is ignored: a resume state is added on purpose
+    return relative
 
 
-def listing(repo: Path, ref: str = DEFAULT_REF) -> list[tuple[str, str, int]]:
-    """(path, blob sha, size in bytes) of every file of the state on ``ref``."""
-    rows = []
-    for line in git(repo, "ls-tree", "-r", "-l", ref).decode().splitlines():
-        meta, path = line.split("\t", 1)
-        _mode, _kind, blob, size = meta.split()
-        rows.append((path, blob, int(size)))
-    return rows
-
-
-def restore(repo: Path, root: Path, ref: str = DEFAULT_REF) -> list[Path]:
-    """Write the state on ``ref`` under ``root``; a file already there must have the same content."""
-    blobs = [(root / path, blob) for path, blob, _size in listing(repo, ref)]
-    for target, blob in blobs:  # check everything before writing anything
-        if target.exists() and target.read_bytes() != git(repo, "cat-file", "blob", blob):
-            raise ValueError(f"{target}: exists with other content; move it away to restore {ref}")
-    for target, blob in blobs:
+def restore(repo: Path, root: Path) -> list[Path]:
+    """Copy the state ``repo`` carries into ``root``; a file already there must have the same content."""
+    pairs = [(repo / path, root / path) for path in state_files(repo)]
+    if not pairs:
+        raise ValueError(f"{repo}: carries no resume state (no file under {CAMPAIGN}/*/checkpoints/ is tracked)")
+    for source, target in pairs:  # check everything before writing anything
+        if target.exists() and target.read_bytes() != source.read_bytes():
+            raise ValueError(f"{target}: exists with other content; move it away to restore the state")
+    for source, target in pairs:
         target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_bytes(git(repo, "cat-file", "blob", blob))
-    return [target for target, _blob in blobs]
+        if source.resolve() != target.resolve():
+            shutil.copy2(source, target)
+    return [target for _source, target in pairs]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -106,23 +114,22 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("action", choices=["save", "restore", "show"])
     parser.add_argument("run_dirs", nargs="*", type=Path, help="save: the run folders to store")
-    parser.add_argument("--repo", type=Path, default=Path("."), help="the repository that carries the ref")
-    parser.add_argument("--root", type=Path, default=Path("."), help="paths are stored relative to this folder")
-    parser.add_argument("--ref", default=DEFAULT_REF)
+    parser.add_argument("--repo", type=Path, default=Path("."), help="the main checkout that carries the state")
+    parser.add_argument("--root", type=Path, default=Path("."), help="the campaign clone (paths are relative to it)")
     args = parser.parse_intermixed_args(argv)
     try:
         if args.action == "save":
             if not args.run_dirs:
                 raise ValueError("save: name at least one run folder")
-            commit = save(args.repo, args.root, args.run_dirs, args.ref)
-            print(f"{args.ref} = {commit[:12]} (parentless; the state it replaces is no longer reachable)")
+            save(args.repo, args.root, args.run_dirs)
+            print(f"staged in {args.repo}; commit it there so that a new machine can resume")
         elif args.action == "restore":
-            for path in restore(args.repo, args.root, args.ref):
+            for path in restore(args.repo, args.root):
                 print(f"restored {path}")
-        rows = listing(args.repo, args.ref)
-        for path, _blob, size in rows:
+        rows = [(path, (args.repo / path).stat().st_size) for path in state_files(args.repo)]
+        for path, size in rows:
             print(f"{size / 1e6:9.2f} MB  {path}")
-        print(f"{sum(size for *_rest, size in rows) / 1e6:9.2f} MB in {len(rows)} files on {args.ref}")
+        print(f"{sum(size for _path, size in rows) / 1e6:9.2f} MB in {len(rows)} files carried by {args.repo}")
     except (ValueError, RuntimeError) as error:
         print(f"campaign_state: {error}", file=sys.stderr)
         return 1

@@ -1,4 +1,4 @@
-"""``scripts/campaign_state.py``: a campaign run's resume state on one replaceable ref, outside ``main``'s history."""
+"""``scripts/campaign_state.py``: a campaign run's resume state travels in ``main`` (the only thing that lands)."""
 
 from __future__ import annotations
 
@@ -42,44 +42,61 @@ def write_run(root: Path, checkpoints: list[int]) -> Path:
     return run
 
 
-def test_save_keeps_only_the_newest_checkpoint_and_restore_rebuilds_the_run(repo: Path, tmp_path: Path) -> None:
+KEPT = (
+    "config.yaml",
+    "curriculum.json",
+    "progress.csv",
+    "written.json",
+    "checkpoints/vision-ppo_1000000_steps.zip",
+    "checkpoints/vision-ppo_vecnormalize_1000000_steps.pkl",
+)
+
+
+def test_save_stages_only_the_newest_checkpoint_and_a_clone_of_main_restores_the_run(
+    repo: Path, tmp_path: Path
+) -> None:
     script = load_script("campaign_state")
     clone = tmp_path / "clone"
     run = write_run(clone, [500_000, 1_000_000])
-    commit = script.save(repo, clone, [run])
-    names = sorted(path for path, _blob, _size in script.listing(repo))
-    kept = (
-        "config.yaml",
-        "curriculum.json",
-        "progress.csv",
-        "written.json",
-        "checkpoints/vision-ppo_1000000_steps.zip",
-        "checkpoints/vision-ppo_vecnormalize_1000000_steps.pkl",
-    )
-    assert names == sorted(f"{RUN}/{name}" for name in kept)
-    assert git(repo, "rev-list", "--parents", "-n", "1", commit).split() == [commit]  # parentless
-    assert git(repo, "ls-tree", "-r", "--name-only", "main").split() == ["README.md"]  # main untouched
+    (repo / ".gitignore").write_text("baselines/experiments/campaign-4m/*/checkpoints/\n")  # as the project's
+    staged = script.save(repo, clone, [run])
+    assert sorted(staged) == sorted(f"{RUN}/{name}" for name in KEPT)
+    git(repo, "commit", "-q", "-m", "state")
+    assert sorted(git(repo, "ls-files", RUN).split()) == sorted(f"{RUN}/{name}" for name in KEPT)
 
-    fresh = tmp_path / "new-machine"
-    restored = script.restore(repo, fresh)
+    # a new machine: a plain clone of main carries the state (a side ref would not have landed)
+    fresh_main = tmp_path / "new-machine-main"
+    git(tmp_path, "clone", "-q", "--single-branch", str(repo), str(fresh_main))
+    fresh = tmp_path / "new-machine-campaign"
+    restored = script.restore(fresh_main, fresh)
     assert len(restored) == 6
     for path in restored:
         assert path.read_bytes() == (clone / path.relative_to(fresh)).read_bytes()
     assert not (fresh / RUN / "tb").exists()
-    assert script.restore(repo, fresh) == restored  # same content again: nothing refused
+    assert script.restore(fresh_main, fresh) == restored  # same content again: nothing refused
 
 
-def test_a_new_save_replaces_the_old_state_which_becomes_unreachable(repo: Path, tmp_path: Path) -> None:
+def test_a_new_save_unstages_the_old_checkpoint_so_main_carries_one_state(repo: Path, tmp_path: Path) -> None:
     script = load_script("campaign_state")
     clone = tmp_path / "clone"
     run = write_run(clone, [500_000])
-    first = script.save(repo, clone, [run])
-    old_blob = git(repo, "rev-parse", f"{first}:{RUN}/checkpoints/vision-ppo_500000_steps.zip").strip()
+    script.save(repo, clone, [run])
+    git(repo, "commit", "-q", "-m", "first state")
     write_run(clone, [500_000, 1_000_000])
-    second = script.save(repo, clone, [run])
-    assert git(repo, "rev-parse", script.DEFAULT_REF).strip() == second != first
-    reachable = git(repo, "rev-list", "--objects", "--all").split()
-    assert old_blob not in reachable and first not in reachable
+    script.save(repo, clone, [run])
+    git(repo, "commit", "-q", "-m", "second state")
+    assert script.tracked_state(repo) == [
+        f"{RUN}/checkpoints/vision-ppo_1000000_steps.zip",
+        f"{RUN}/checkpoints/vision-ppo_vecnormalize_1000000_steps.pkl",
+    ]
+    assert not (repo / RUN / "checkpoints" / "vision-ppo_500000_steps.zip").exists()
+
+
+def test_save_in_place_stages_the_files_where_they_are(repo: Path) -> None:
+    script = load_script("campaign_state")
+    run = write_run(repo, [500_000])  # the campaign clone is the repository that commits
+    staged = script.save(repo, repo, [run])
+    assert git(repo, "diff", "--cached", "--name-only").split() == sorted(staged)
 
 
 def test_restore_refuses_to_overwrite_other_content(repo: Path, tmp_path: Path, capsys) -> None:
@@ -94,6 +111,12 @@ def test_restore_refuses_to_overwrite_other_content(repo: Path, tmp_path: Path, 
     assert message.startswith("campaign_state: ") and "progress.csv: exists with other content" in message
     assert "\n" not in message
     assert (other / RUN / "progress.csv").read_text() == "a newer progress\n"  # nothing written
+
+
+def test_restore_from_a_main_without_a_state_is_refused(repo: Path, tmp_path: Path, capsys) -> None:
+    script = load_script("campaign_state")
+    assert script.main(["restore", "--repo", str(repo), "--root", str(tmp_path / "clone")]) == 1
+    assert "carries no resume state" in capsys.readouterr().err
 
 
 def test_a_run_folder_without_a_checkpoint_is_refused_by_name(repo: Path, tmp_path: Path, capsys) -> None:
