@@ -49,6 +49,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "5a0cb6a1746be02d978186082627f4a558f5463faed3cf3f9e869bf3b2366df3": "state-ppo-Circle/state-ppo-Circle.zip",
     "fee881723ef52c1a8439d4a27296da5d8e542b256ee43117300cc9e08ee159de": "vision-com-S/vision-com-S.zip",
     "c54280abc7c1fd055f210dd02464f251a548df6a5cbd116cf6fc427829ef45a9": "vision-com-J/vision-com-J.zip",
+    "470ae7e6f38c92a4aeebd6a404683b05408fab7602bbfa0d93ffe88cd9907ad2": "vision-com-Circle/vision-com-Circle.zip",
 }
 
 
