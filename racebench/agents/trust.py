@@ -51,6 +51,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "c54280abc7c1fd055f210dd02464f251a548df6a5cbd116cf6fc427829ef45a9": "vision-com-J/vision-com-J.zip",
     "470ae7e6f38c92a4aeebd6a404683b05408fab7602bbfa0d93ffe88cd9907ad2": "vision-com-Circle/vision-com-Circle.zip",
     "478807598a0e4c5de5434c5da7306b5f64f0373fe0a58b87ee345c5f828347f0": "vision-no-avoid-S/vision-no-avoid-S.zip",
+    "b1b4e4fcba3f5ab2f857cb5a0f5f3feb67d6fda1617ff4f4c40cf4d670ec200b": "vision-no-avoid-J/vision-no-avoid-J.zip",
 }
 
 
