@@ -131,7 +131,7 @@ def test_another_digest_for_a_trusted_path_is_refused(root: Path) -> None:
 
 def test_long_trust_entries_wrap_within_the_line_length(root: Path) -> None:
     trust_file = root / finish_script.TRUST_FILE
-    long_path = "vision-no-avoid-Circle/vision-no-avoid-Circle.zip"
+    long_path = "a-made-up-long-config-Circle/a-made-up-long-config-Circle.zip"  # never a real entry
     assert finish_script.add_trusted(trust_file, "a" * 64, long_path)
     assert trusted(trust_file)["a" * 64] == long_path
     assert max(len(line) for line in trust_file.read_text().splitlines()) <= finish_script.LINE_LENGTH
@@ -162,7 +162,7 @@ def test_replace_swaps_the_trusted_policy_of_a_folder_and_nothing_else(tmp_path:
 
 def test_replace_drops_a_wrapped_entry_too(root: Path) -> None:
     trust_file = root / finish_script.TRUST_FILE
-    long_path = "vision-no-avoid-Circle/vision-no-avoid-Circle.zip"
+    long_path = "a-made-up-long-config-Circle/a-made-up-long-config-Circle.zip"  # never a real entry
     assert finish_script.add_trusted(trust_file, "a" * 64, long_path)
     assert finish_script.add_trusted(trust_file, "b" * 64, long_path, replace=True)
     entries = trusted(trust_file)

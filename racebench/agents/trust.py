@@ -52,6 +52,9 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "470ae7e6f38c92a4aeebd6a404683b05408fab7602bbfa0d93ffe88cd9907ad2": "vision-com-Circle/vision-com-Circle.zip",
     "478807598a0e4c5de5434c5da7306b5f64f0373fe0a58b87ee345c5f828347f0": "vision-no-avoid-S/vision-no-avoid-S.zip",
     "b1b4e4fcba3f5ab2f857cb5a0f5f3feb67d6fda1617ff4f4c40cf4d670ec200b": "vision-no-avoid-J/vision-no-avoid-J.zip",
+    "5c7f53e8a6dffaecff3085990b2738eea6e4b1d17580fee4ade20330e4ce3762": (
+        "vision-no-avoid-Circle/vision-no-avoid-Circle.zip"
+    ),
 }
 
 
