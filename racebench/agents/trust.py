@@ -55,6 +55,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "5c7f53e8a6dffaecff3085990b2738eea6e4b1d17580fee4ade20330e4ce3762": (
         "vision-no-avoid-Circle/vision-no-avoid-Circle.zip"
     ),
+    "ccde553d979ab7ec43ad24c0c7b0b3ce7193ad77621ee1281586e33b85e6a7f0": "vision-one-step-S/vision-one-step-S.zip",
 }
 
 
