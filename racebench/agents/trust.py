@@ -57,6 +57,9 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     ),
     "ccde553d979ab7ec43ad24c0c7b0b3ce7193ad77621ee1281586e33b85e6a7f0": "vision-one-step-S/vision-one-step-S.zip",
     "513a50984e83eb1b99c257772c8711fc83744f76a50821e060158833e5b04e98": "vision-one-step-J/vision-one-step-J.zip",
+    "36bc87ea2f75377a5cd52da6d9c6f782ecfdb8eacd26ccafb4d17b5ad71a3ae6": (
+        "vision-one-step-Circle/vision-one-step-Circle.zip"
+    ),
 }
 
 
