@@ -174,7 +174,7 @@ def test_the_committed_entries_are_methods_with_descriptions() -> None:
     entries = {e.name: e for e in load_entries(board)}
     assert set(entries) == {
         "planner", "planner-fast", "follow", "hover", "vision-distill", "vision-distill-ppo", "vision-ppo", "state-ppo",
-        "vision-com", "vision-no-avoid", "vision-one-step",
+        "vision-com", "vision-no-avoid", "vision-one-step", "vision-no-gru",
     }  # fmt: skip
     for name in ("planner", "planner-fast", "follow", "hover"):
         assert entries[name].meta["policies"] == {"all": {"policy": f"builtin:{name}", "records": [f"results/{name}"]}}
@@ -188,6 +188,7 @@ def test_the_committed_entries_are_methods_with_descriptions() -> None:
     }  # fmt: skip
     for name in ("vision-ppo", "state-ppo", "vision-com", "vision-no-avoid", "vision-one-step"):  # campaign runs 1-14
         assert entries[name].tracks == ("S", "Circle", "J"), name
+    assert entries["vision-no-gru"].tracks == ("S",)  # campaign run 15; J and Circle as runs 16-17 land
     for entry in entries.values():
         assert entry.meta["description"].strip() and "\n" not in entry.meta["description"].strip()
         steps, wall = entry.budget()

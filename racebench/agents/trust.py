@@ -60,6 +60,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "36bc87ea2f75377a5cd52da6d9c6f782ecfdb8eacd26ccafb4d17b5ad71a3ae6": (
         "vision-one-step-Circle/vision-one-step-Circle.zip"
     ),
+    "a71b6c79a3e9a7bde889288aeaa59ed3406502995d5d7327462ece55a8ed4fd3": "vision-no-gru-S/vision-no-gru-S.zip",
 }
 
 
