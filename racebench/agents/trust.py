@@ -61,6 +61,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
         "vision-one-step-Circle/vision-one-step-Circle.zip"
     ),
     "a71b6c79a3e9a7bde889288aeaa59ed3406502995d5d7327462ece55a8ed4fd3": "vision-no-gru-S/vision-no-gru-S.zip",
+    "4731e4e37ff4e05629bdfcc1e076bf2a46a452a504067dd3e0342f3e3bef74e6": "vision-no-gru-J/vision-no-gru-J.zip",
 }
 
 
