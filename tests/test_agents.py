@@ -241,8 +241,10 @@ def test_builtin_and_committed_hashes_are_unchanged() -> None:
     installed code only keeps its file's hash."""
     for builtin in ("planner-fast", "hover"):
         assert policy_identity(builtin).sha256 == committed_sha256(builtin)
-    checkpoint = "baselines/checkpoints/vision-ppo-S/vision-ppo-S.zip"
-    assert policy_identity(str(ROOT / checkpoint)).sha256 == committed_sha256(checkpoint)
+    # A campaign checkpoint's records name the path it was evaluated at (the run's folder): key on its own eval.
+    checkpoint = ROOT / "baselines/checkpoints/vision-ppo-S/vision-ppo-S.zip"
+    evaluated = {json.loads(line)["policy_sha256"] for line in (checkpoint.parent / "eval/records.jsonl").open()}
+    assert evaluated == {policy_identity(str(checkpoint)).sha256}
     ensemble = ROOT / "scripts/ensemble_agent.py"
     assert python_agent_modules(ensemble) == {}  # racebench, numpy and the standard library only
     assert policy_identity(f"{ensemble}:EnsembleAgent").sha256 == sha256_file(ensemble)
