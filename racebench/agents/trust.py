@@ -31,7 +31,6 @@ from racebench.utils.files import atomic_write, sha256_file
 #: sha256 of the first-party checkpoints shipped in ``baselines/checkpoints`` -> their path under it. They load
 #: without ``trust_code`` (``tests/test_checkpoints.py`` keeps this list and the committed files in step).
 TRUSTED_CHECKPOINTS: dict[str, str] = {
-    "a9648364a3a9c09e80189685eaecd34bfa47c1812bb7de8ab5a5cf00bd2bcd92": "vision-ppo-S/vision-ppo-S.zip",
     "ab21b31bfddbbf6add303d7a694b271802ec9b0174ca333f24a6a5938f298373": "vision-distill-S/vision-distill-S.zip",
     "2db06548dde9f2989e1d25394faac2d02a37deaff6e2893bbf4b4eb7da64650a": "vision-distill-ppo-S/vision-distill-ppo-S.zip",
     "5639e53c43a9f9f45ea1dac34c8058f3c8250b76e7d922016a243e329a07a4ed": (
@@ -63,6 +62,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "a71b6c79a3e9a7bde889288aeaa59ed3406502995d5d7327462ece55a8ed4fd3": "vision-no-gru-S/vision-no-gru-S.zip",
     "4731e4e37ff4e05629bdfcc1e076bf2a46a452a504067dd3e0342f3e3bef74e6": "vision-no-gru-J/vision-no-gru-J.zip",
     "6770750ec6407172f0795e4d66e7f5372017332d13d69adfff60a5aa65d210e4": "vision-no-gru-Circle/vision-no-gru-Circle.zip",
+    "fe932044362d7182a85aec746dbe5abaea159c4cb496c23f377bebc77bdc99b5": "vision-ppo-S/vision-ppo-S.zip",
 }
 
 
