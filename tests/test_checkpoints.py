@@ -1,7 +1,7 @@
 """The committed baseline checkpoints reproduce their committed success rates, checked statistically.
 
 A learned policy's closed loop amplifies last-bit float differences between CPUs (another machine flew 7 of
-20 committed ``vision-ppo-S`` episodes differently: 13/20 successes against the committed 14/20), so a
+20 committed episodes of the first ``vision-ppo-S`` differently: 13/20 successes against the committed 14/20), so a
 bit-identical replay is not a promise the benchmark can make for learned policies. The promise is the
 success rate: on any machine, a replay of the first :data:`REPLAY` evaluation seeds of its track's main id
 (``RaceObs-<track>-v0``, the track the checkpoint's folder name ends with) must be consistent with the committed
