@@ -99,7 +99,13 @@ def test_curves_read_sb3s_own_progress_csv(tmp_path: Path) -> None:
 
 
 def test_curriculum_ids_are_plotted_when_present(tmp_path: Path) -> None:
-    evals = [str(ROOT / "baselines/checkpoints" / name / "eval") for name in ("vision-ppo-S", "state-ppo-S")]
+    from racebench.evaluation import Evaluator
+
+    # Two agents flown on S's curriculum levels (the committed evaluations are on the paper's ids only).
+    evals = [str(tmp_path / agent) for agent in ("hover", "planner-fast")]
+    for folder in evals:
+        agent = Path(folder).name
+        Evaluator(agent, ["RaceObs-S-Level1-v0", "RaceObs-S-Level2-v0"], episodes=1, out_dir=folder).run(progress=False)
     assert cli.main(["-q", "plot", *evals, "--out", str(tmp_path), "--dpi", "60"]) == 0
     assert (tmp_path / "success_by_level.png").is_file()
     summary = read_summaries(evals)
