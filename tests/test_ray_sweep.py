@@ -460,6 +460,34 @@ def test_the_shipped_campaign_plans_the_24_runs_of_the_paper_tables_in_order() -
     assert all(run.config.name == run.label.split(f"-{run.track}-")[0] for run in sweep.runs)
 
 
+def test_campaign_2_plans_its_33_runs_and_the_long_run_on_the_papers_distribution() -> None:
+    """Issue 69's campaign: the six paper configs and the flying-start one-step on the three tracks (seed 0), seeds 1-2
+    of vision-ppo and vision-one-step; 4 M steps, validation every 0.5 M; then vision-ppo on S to 24 M steps."""
+    root = Path(__file__).parents[1] / "baselines" / "sweeps"
+    sweep = load_sweep(root / "campaign-2.yaml")
+    tracks = ("S", "J", "Circle")
+    configs = ["vision-ppo", "vision-one-step", "vision-one-step-flying", "state-ppo", "vision-com", "vision-no-avoid",
+               "vision-no-gru"]  # fmt: skip
+    expected = [f"{config}-{track}-seed0" for config in configs for track in tracks]
+    expected += [f"{config}-{track}-seed{seed}" for config in ("vision-ppo", "vision-one-step") for track in tracks
+                 for seed in (1, 2)]  # fmt: skip
+    assert [run.label for run in sweep.runs] == expected and len(expected) == 33
+    assert {run.steps for run in sweep.runs} == {4_000_000} and sweep.out.name == "campaign-2"
+    assert all(run.eval_envs == track_envs("paper", run.track) for run in sweep.runs)
+    assert {(run.eval_episodes, run.eval_episodes_other) for run in sweep.runs} == {(100, 50)}
+    assert {(run.validation_every, run.checkpoint_every, run.evaluate_policy_only) for run in sweep.runs} == {
+        (500_000, 500_000, True)
+    }
+    for run in sweep.runs:  # the paper's distribution, [com]'s own regime and the named flying start
+        start = {"vision-com": "track", "vision-one-step-flying": "gates"}.get(run.config.name, "points")
+        shift_z = None if run.config.name == "vision-com" else 0.3
+        assert (run.config.start_mode, run.config.gate_shift, run.config.gate_shift_z) == (start, 1.0, shift_z)
+        assert run.config.obstacle_placement == "band"
+    (long,) = load_sweep(root / "campaign-2-long.yaml").runs
+    assert (long.label, long.steps, long.validation_every) == ("vision-ppo-long-S-seed0", 24_000_000, 2_000_000)
+    assert long.config.start_mode == "points" and long.config.gru_hidden == 256
+
+
 def test_the_shipped_teacher_student_sweep_chains_each_student_to_its_fine_tuning() -> None:
     path = Path(__file__).parents[1] / "baselines" / "sweeps" / "teacher-student.yaml"
     sweep = load_sweep(path)

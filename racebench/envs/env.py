@@ -33,6 +33,7 @@ from racebench.sim.obstacles import (
     CORRIDOR_MARGIN,
     MAX_GATE_SHIFT,
     MAX_GATE_SHIFT_Z,
+    PLACEMENTS,
     ObstacleGenerator,
 )
 from racebench.sim.quadrotor import Quadrotor, QuadrotorParams
@@ -44,7 +45,13 @@ from racebench.utils.validation import check_int, check_real, check_triple
 
 OBS_MODES: tuple[str, ...] = ("vision", "state")
 RENDERERS: tuple[str, ...] = ("pybullet", "raycast")
-START_MODES: tuple[str, ...] = ("track", "gates")
+START_MODES: tuple[str, ...] = ("track", "points", "gates")
+#: ``start_mode="points"``: the starting point before gate k > 0 lies this far before the gate centre, against its
+#: normal. The authors' track starts are 2 m before the first gate (S (1,0,1) → (3,0,1); J and Circle (2,3,1) →
+#: (4,3,1)); from 2 m the whole 1.28 m frame fills at most 78° of the 90° field of view at any ±0.5 m offset.
+START_POINT_DISTANCE = 2.0  # m
+#: ``start_mode="points"``: offsets drawn around a gate's starting point before falling back to the track start.
+START_POINT_TRIES = 8
 # Parameter ranges (the table in RaceEnv's docstring gives the reasons).
 MAX_DESIRED_SPEED = 20.0  # m/s
 MAX_EPISODE_TIME = 600.0  # s
@@ -100,19 +107,26 @@ class RaceEnv(gym.Env):
         renderer: depth renderer, ``"pybullet"`` (``getCameraImage`` with TinyRenderer, the reference) or
             ``"raycast"`` (:class:`~racebench.sim.raycast.BatchDepthRenderer`, the same image within a tested
             tolerance, an order of magnitude faster).
-        start_mode: ``"track"`` (every episode starts in the track's start region: evaluation) or ``"gates"``
-            (training: the paper's random initialization "around each starting point", Sec. III-C.2). With
-            ``"gates"`` an episode starts before a gate ``k`` drawn uniformly: ``k = 0`` is the track's start
-            region; for ``k > 0`` the drone starts between gates ``k − 1`` and ``k`` (±``start_spread``, clear
-            of obstacles by the generator's clearance, else at the track start), facing along the leg from gate
-            ``k − 1`` to gate ``k``, which is its first gate, already flying along it at up to
-            ``desired_speed``. The episode then succeeds on passing the remaining gates (``lap_time`` is set;
-            ``info["start_gate"]`` is ``k``, so only ``k = 0`` episodes are laps).
+        start_mode: where episodes start. ``"track"``: always in the track's start region (evaluation).
+            ``"points"`` (training, the paper's "random initialization around each starting point", Sec. III-C.2):
+            at rest, before a gate ``k`` drawn uniformly; ``k = 0`` is the track's start region, and for
+            ``k > 0`` the starting point lies :data:`START_POINT_DISTANCE` m before gate ``k`` against its
+            normal (the next gate fully in the camera's view), offset uniformly by ±``start_spread`` and facing
+            along the normal; an offset closer than the generator's clearance to anything (or below 0.5 m) is
+            redrawn, up to :data:`START_POINT_TRIES` times, else the episode starts at the track start.
+            ``"gates"`` (campaign 1's flying mid-leg start, kept so that its runs reproduce): for ``k > 0`` the
+            drone starts between gates ``k − 1`` and ``k`` (±``start_spread``, clear of obstacles by the
+            generator's clearance, else at the track start), facing along the leg, already flying along it at a
+            speed drawn uniformly up to ``desired_speed``. In both, gate ``k`` is the first to pass and the episode
+            succeeds on passing the remaining gates (``lap_time`` is set; ``info["start_gate"]`` is ``k``, so only
+            ``k = 0`` episodes are laps).
         gate_shift_z: ± half-range of the gates' vertical shift in m (default ``gate_shift``; the paper trains
             with ±1 m on x/y and ±0.3 m on z).
         depth_format: ``"float32"`` (the default and the paper's: ``(1, 64, 64)`` in [0, 1]) or ``"uint8"``
             (``(64, 64, 1)`` in [0, 255], :func:`depth_to_uint8` of the float image), which stable-baselines3's
             ``CnnPolicy`` / ``MultiInputPolicy`` treat as an image and give a NatureCNN.
+        obstacle_placement: ``"band"`` (env version 3: a strip along each leg, matched to the authors' scenes) or
+            ``"box"`` (env version 2's box between two gates); see :class:`~racebench.sim.obstacles.ObstacleGenerator`.
 
     Parameter ranges, checked when the env is made (``gym.make``; :meth:`set_task` checks its own the same way):
     a value outside them, a NaN, an inf or a wrong type raises a one-line ``ValueError`` naming the parameter,
@@ -155,6 +169,10 @@ class RaceEnv(gym.Env):
     outcome version :data:`~racebench.envs.registration.ENV_VERSION` instead, and results of two versions are
     never mixed):
 
+    * v0, outcome version 3: obstacles stand in a strip along each leg, tuned per track so that the share within
+      0.5 m and 1.0 m of the racing line matches the authors' released scenes (``obstacle_placement="band"``;
+      version 2's placement is ``"box"``); every id's scenes changed. Added without changing outcomes at the
+      defaults: ``start_mode="points"`` (the paper's training starts, at rest).
     * v0, outcome version 2: every touch is a crash (swept-sphere contact from exact geometry at every physics
       substep, no Bullet collision response; ``crash_reason`` names the gate or obstacle), and a gate crossed on
       a substep that touched its frame is not passed. Since then, without changing any outcome:
@@ -185,6 +203,7 @@ class RaceEnv(gym.Env):
         start_mode: str = "track",
         gate_shift_z: float | None = None,
         depth_format: str = "float32",
+        obstacle_placement: str = "band",
     ) -> None:
         super().__init__()
         if obs_mode not in OBS_MODES:
@@ -193,6 +212,8 @@ class RaceEnv(gym.Env):
             raise ValueError(f"start_mode must be one of {START_MODES}, got {start_mode!r}")
         if depth_format not in DEPTH_FORMATS:
             raise ValueError(f"depth_format must be one of {DEPTH_FORMATS}, got {depth_format!r}")
+        if obstacle_placement not in PLACEMENTS:
+            raise ValueError(f"obstacle_placement must be one of {PLACEMENTS}, got {obstacle_placement!r}")
         if renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -250,6 +271,7 @@ class RaceEnv(gym.Env):
             gate_shift=gate_shift,
             gate_shift_z=gate_shift_z,
             drone_radius=self.params.collision_radius,
+            placement=obstacle_placement,
         )
         self.camera = DepthCamera(noise_std=depth_noise_std)
         self.renderer = renderer
@@ -319,7 +341,9 @@ class RaceEnv(gym.Env):
         elif not isinstance(scene, Scene):
             raise ValueError(f"reset: options['scene'] must be a racebench Scene, got {type(scene).__name__}")
         self.start_gate, velocity = 0, None
-        if self.start_mode == "gates" and "scene" not in options:
+        if self.start_mode == "points" and "scene" not in options:
+            scene, self.start_gate = self._start_at_a_point(scene)
+        elif self.start_mode == "gates" and "scene" not in options:
             scene, self.start_gate, velocity = self._start_before_a_gate(scene)
         self.scene = scene
         self.collision = CollisionChecker(scene, self.params.collision_radius)
@@ -335,6 +359,23 @@ class RaceEnv(gym.Env):
         self.prev_action = np.array([self.params.hover_action, 0.0, 0.0, 0.0])
         self._arena = (tuple(scene.arena_low.tolist()), tuple(scene.arena_high.tolist()))
         return self._info(dict.fromkeys(REWARD_TERMS, 0.0))
+
+    def _start_at_a_point(self, scene: Scene) -> tuple[Scene, int]:
+        """``start_mode="points"``: move the start of ``scene`` to a uniformly drawn gate's starting point (at rest).
+
+        See the class doc. Returns the scene with its start pose and the first gate to pass.
+        """
+        k = int(self.np_random.integers(len(scene.gates)))
+        if k == 0:
+            return scene, 0
+        gate = scene.gates[k]
+        point = gate.center - START_POINT_DISTANCE * gate.normal
+        spread = self.track.start.spread
+        for _ in range(START_POINT_TRIES):
+            start = point + self.np_random.uniform(-spread, spread)
+            if start[2] >= 0.5 and scene.point_distance(*start.tolist()) >= self.generator.clearance:
+                return dataclasses.replace(scene, start_position=start, start_yaw=float(gate.yaw)), k
+        return scene, 0
 
     def _start_before_a_gate(self, scene: Scene) -> tuple[Scene, int, np.ndarray | None]:
         """``start_mode="gates"``: move the start of ``scene`` before a uniformly drawn gate (see the class doc).

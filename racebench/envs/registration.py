@@ -17,8 +17,10 @@ import gymnasium as gym
 #: carries this number instead, and any change that can change an episode's outcome (physics, collision or gate
 #: logic, scene generation, time limits) bumps it, so results of different versions are never mixed.
 #: History: 1 = first release; 2 = every touch is a crash (exact swept-sphere geometry, no Bullet bounce) and a
-#: gate crossed on a substep that touched its frame is not passed.
-ENV_VERSION = 2
+#: gate crossed on a substep that touched its frame is not passed; 3 = obstacles placed in a strip along each leg,
+#: matched to the authors' scenes' share of obstacles near the racing line (``obstacle_placement="band"``; version 2's
+#: box is ``"box"``), so every id's scenes changed.
+ENV_VERSION = 3
 
 TRACK_IDS: dict[str, str] = {"S": "S", "J": "J", "Circle": "Circle"}
 DENSITIES: tuple[int, ...] = (2, 3, 4, 5)

@@ -126,6 +126,22 @@ class ObstacleRegion:
 
 
 @dataclass(frozen=True)
+class ObstacleBand:
+    """Where ``placement="band"`` draws obstacles: a strip along each region's leg (gate centre to gate centre).
+
+    Attributes:
+        half_width: lateral half-width of the strip (m), perpendicular to the leg, horizontal.
+        end_margin: length kept free at each end of the leg (m), along it.
+        profile: exponent of the lateral offset ``half_width · sign(s) · |s|^profile``, ``s`` uniform in [-1, 1]: 1 is
+            uniform across the strip, larger values crowd obstacles towards the racing line.
+    """
+
+    half_width: float = 1.9
+    end_margin: float = 0.5
+    profile: float = 1.0
+
+
+@dataclass(frozen=True)
 class Track:
     """A race track as loaded from a YAML file (see the module docstring and docs/environment.md)."""
 
@@ -134,6 +150,7 @@ class Track:
     start: StartRegion
     closed_loop: bool
     obstacle_regions: tuple[ObstacleRegion, ...] = field(default_factory=tuple)
+    obstacle_band: ObstacleBand = field(default_factory=ObstacleBand)
     description: str = ""
     source: str = ""
 
@@ -204,7 +221,7 @@ def parse_track(data: Any, source: str = "<track>") -> Track:
         raise TrackFormatError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
     _check_keys(
         data,
-        {"name", "description", "closed_loop", "gate_size", "gates", "start", "obstacle_regions"},
+        {"name", "description", "closed_loop", "gate_size", "gates", "start", "obstacle_regions", "obstacle_band"},
         source,
         "",
     )
@@ -289,6 +306,21 @@ def parse_track(data: Any, source: str = "<track>") -> Track:
         half_width = _number(r.get("half_width", 1.2), source, f"{where}.half_width", positive=True)
         regions.append(ObstacleRegion(between=(between[0], between[1]), half_width=half_width))
 
+    raw_band = data.get("obstacle_band", {})
+    if not isinstance(raw_band, dict):
+        raise _fail(source, "obstacle_band", f"expected a mapping, got {raw_band!r}")
+    _check_keys(raw_band, {"half_width", "end_margin", "profile"}, source, "obstacle_band")
+    default_band = ObstacleBand()
+    band = ObstacleBand(
+        half_width=_number(
+            raw_band.get("half_width", default_band.half_width), source, "obstacle_band.half_width", positive=True
+        ),
+        end_margin=_number(raw_band.get("end_margin", default_band.end_margin), source, "obstacle_band.end_margin"),
+        profile=_number(raw_band.get("profile", default_band.profile), source, "obstacle_band.profile", True),
+    )
+    if band.end_margin < 0:
+        raise _fail(source, "obstacle_band.end_margin", f"must be >= 0, got {band.end_margin!r}")
+
     description = data.get("description", "")
     if not isinstance(description, str):
         raise _fail(source, "description", f"expected a string, got {description!r}")
@@ -298,6 +330,7 @@ def parse_track(data: Any, source: str = "<track>") -> Track:
         start=StartRegion(center=start_center, yaw=start_yaw, spread=spread),
         closed_loop=closed_loop,
         obstacle_regions=tuple(regions),
+        obstacle_band=band,
         description=description,
         source=source,
     )

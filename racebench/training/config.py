@@ -11,7 +11,9 @@ from typing import Any
 
 from racebench.agents.planner import FastPlannerAgent
 from racebench.agents.recurrent import ACTION_OUTPUTS, CNN_KINDS
+from racebench.envs.env import START_MODES
 from racebench.envs.registration import CURRICULUM
+from racebench.sim.obstacles import PLACEMENTS
 from racebench.utils.yamlfile import read_yaml
 
 BASELINES: tuple[str, ...] = (
@@ -20,6 +22,7 @@ BASELINES: tuple[str, ...] = (
     "vision-no-gru",
     "vision-no-avoid",
     "vision-one-step",
+    "vision-one-step-flying",
     "vision-com",
     "vision-ppo-fast",
     "vision-distill",
@@ -69,9 +72,12 @@ class TrainConfig:
     levels: dict[int, dict[str, Any]] = field(default_factory=lambda: {k: dict(v) for k, v in CURRICULUM.items()})
     scene_groups: dict[int, int] = field(default_factory=lambda: {1: 2, 2: 4, 3: 8})
     start_spread: tuple[float, float, float] = (0.5, 0.5, 0.5)
-    start_mode: str = "gates"  # RaceEnv start_mode: "gates" starts episodes before any gate (paper Sec. III-C.2)
-    gate_shift: float = 0.3
-    gate_shift_z: float | None = None  # vertical gate shift (default gate_shift; the paper: ±1 m x/y, ±0.3 m z)
+    # RaceEnv start_mode: "points" starts at rest around the track start or a point before any gate (the paper's
+    # Sec. III-C.2); "gates" is campaign 1's flying mid-leg start; "track" the track start only.
+    start_mode: str = "points"
+    gate_shift: float = 1.0  # the paper's training gate randomisation: ±1 m on x/y ...
+    gate_shift_z: float | None = 0.3  # ... and ±0.3 m on z (None: the same as gate_shift)
+    obstacle_placement: str = "band"  # RaceEnv obstacle_placement: "band" (env version 3) or "box" (version 2)
     depth_noise_std: float = 0.02
     renderer: str | None = "raycast"  # training depth: the tested TinyRenderer match, ~30x faster than PyBullet's
     n_envs: int = 8
@@ -148,7 +154,8 @@ class TrainConfig:
         teacher_problem = self.teacher_error()
         checks = [
             (self.obs_mode in ("vision", "state"), "obs_mode must be 'vision' or 'state'"),
-            (self.start_mode in ("track", "gates"), "start_mode must be 'track' or 'gates'"),
+            (self.start_mode in START_MODES, f"start_mode must be one of {list(START_MODES)}"),
+            (self.obstacle_placement in PLACEMENTS, f"obstacle_placement must be one of {list(PLACEMENTS)}"),
             (self.start_level in self.levels, f"start_level must be one of {sorted(self.levels)}"),
             (sorted(self.levels) == list(range(1, len(self.levels) + 1)), "levels must be numbered 1, 2, ..., n"),
             (0 < self.promote_at <= 1, "promote_at must be in (0, 1]"),
@@ -213,6 +220,7 @@ class TrainConfig:
             "start_mode": self.start_mode,
             "gate_shift": self.gate_shift,
             "gate_shift_z": self.gate_shift_z,
+            "obstacle_placement": self.obstacle_placement,
             "depth_noise_std": self.depth_noise_std,
             "density": level.get("density", 3),
             "desired_speed": level.get("desired_speed", 8.0),
