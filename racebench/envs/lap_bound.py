@@ -1,30 +1,33 @@
 """A lower bound on the lap time of a track: no flight within the airframe's thrust finishes a lap faster.
 
 Record validation (:func:`racebench.evaluation.records.validate_record`) rejects a success claiming a lap below it, so a
-forged lap that is consistent with its step count still cannot be physically impossible.
+forged lap that is consistent with its step count still cannot be physically impossible. The derivation is in
+``docs/evaluation.md`` ("The lap-time lower bound"); in short:
 
-**Model.** The drone is a point mass that starts at rest (every evaluation episode does) and is pushed by a thrust of
-at most ``T_max`` in any direction (the real one points along the body axis; any direction only helps), plus
-gravity. Attitude dynamics, motor lag, body-rate limits, PyBullet's damping and the drag's braking are left out:
-each can only slow the drone. Left out too is the small lift a quadratic body drag gives while braking steeply,
-which no airframe can fly at full thrust forwards at the same time; the committed records stay far above the bound
-(``tests/test_lap_bound.py`` checks every one).
+**What it assumes (first principles only).** Every evaluation episode starts at rest, in the track's start box. The
+forces on the drone are gravity, a thrust of at most ``T_max`` (in any direction: the real one points along the body
+axis; any direction only helps) and a drag that never adds energy (``f·v ≤ 0``: the quadratic body-axis drag of
+:mod:`racebench.sim.quadrotor`, whatever the attitude). Nothing else is assumed: not the attitude dynamics, the motor
+lag, the rate limits or the controller, and not the obstacles (a lap through any obstacle layout is at least as long as
+the straight one), so the bound holds for every obstacle layout and every policy. A successful lap never touches the
+ground, so the drone never falls more than ``H`` (the highest start above the ground).
 
-**Geometry.** The path must go from the start box through every gate's opening, in order. Each opening's
-horizontal footprint (widened by the env's random gate shift) lies in an axis-aligned rectangle, so the
-horizontal length ``L`` of any lap is at least the sum of the distances between consecutive rectangles. The lap
-ends inside the last opening, so it ends at most ``drop`` below the highest start (:func:`lap_geometry`).
+**Geometry.** The lap goes from the start box through every gate's opening, in order. Each opening, shifted anywhere
+within the env's gate-shift ranges, lies in an axis-aligned box, so any lap's path is at least ``L``, the sum of the
+straight-line distances between consecutive boxes (:func:`lap_geometry`).
 
-**Time.** With thrust ``u(t)``, ``|u| ≤ a = T_max / m``, starting at rest, the horizontal distance flown by time
-``T`` is at most ``∫ (T − t) |u_h| dt`` and the height gained is ``∫ (T − t) (u_z − g) dt ≥ −drop``. Over the
-weights ``T − t`` (total ``T²/2``), Jensen's inequality on the concave ``√(a² − u_z²)`` gives
+**Energy.** With ``a = T_max / m``, the kinetic energy per unit mass grows at most by the thrust's work and the height
+lost: ``½|v|² ≤ a·s + g·H`` after a path ``s``. So ``ds/dt = |v| ≤ √(2 a s + 2 g H)``, and from rest
+``s(T) ≤ √(2 g H)·T + a T²/2``: no lap is shorter than the ``T`` at which this reaches ``L``
+(:func:`min_time_from_rest`, closed form). The drag's lift (a drone gliding on its body drag while it thrusts forwards)
+is inside the bound: the energy argument never asks which way a force points, only that drag does no positive work.
 
-    L ≤ T²/2 · √(a² − max(0, g − 2·drop/T²)²),
-
-whose least solution is :func:`min_time_from_rest` (closed form). Example: on level ground (``drop = 0``) it is
-``√(2L / √(a² − g²))``, the time of a point mass that holds its height and accelerates horizontally at full tilt.
-PyBullet integrates semi-implicitly (velocity first), which moves the drone as the continuous system would in half
-a physics step more, so the bound of an env is the continuous one less ``1 / (2 physics_freq)``.
+**Physics ticks.** PyBullet integrates semi-implicitly (velocity first, then position), with the drag of the velocity
+before the tick. The same argument on those update rules gives, exactly, ``|v_{n+1}|² ≤ 2 a s_n + 2 g H +
+(n + 1) dt² (a² − g²)`` and ``s_{n+1} = s_n + dt |v_{n+1}|``, while ``dt·k·|v|/m ≤ 2`` on each body axis (the drag
+of one tick cannot reverse a velocity component; checked, see :func:`min_ticks_from_rest`). The env's bound is the
+least number of ticks after which this recursion covers ``L``, times ``dt``: a lap stamped below it cannot be flown in
+the simulator, and a lap of exactly that many ticks is not refused.
 """
 
 from __future__ import annotations
@@ -42,54 +45,74 @@ from racebench.sim.quadrotor import QuadrotorParams
 from racebench.sim.track import Gate, Track, load_track
 
 
-def min_time_from_rest(horizontal: float, drop: float, thrust_accel: float, gravity: float) -> float:
-    """Least time (s) for a point mass at rest to fly ``horizontal`` m sideways ending at most ``drop`` m lower.
+def _check(length: float, height: float, thrust_accel: float, gravity: float) -> None:
+    if length < 0 or height < 0 or not thrust_accel > gravity > 0:
+        raise ValueError(f"need length >= 0, height >= 0 and thrust_accel > gravity > 0, got {length}, {height}, "
+                         f"{thrust_accel}, {gravity}")  # fmt: skip
 
-    ``thrust_accel`` (m/s², > ``gravity``) bounds the non-gravitational acceleration in any direction; a negative
-    ``drop`` is a climb. See the module docstring for the derivation.
+
+def min_time_from_rest(length: float, height: float, thrust_accel: float, gravity: float) -> float:
+    """Least time (s) for a mass at rest to fly a path of ``length`` m, never more than ``height`` m below its start.
+
+    ``thrust_accel`` (m/s², > ``gravity``) bounds the thrust's acceleration in any direction; every other force but
+    gravity does no positive work. Continuous time: the root of ``length = √(2 g H)·T + a T²/2``.
     """
-    if horizontal < 0 or not thrust_accel > gravity > 0:
-        raise ValueError(f"need horizontal >= 0 and thrust_accel > gravity > 0, got {horizontal}, {thrust_accel}, "
-                         f"{gravity}")  # fmt: skip
-    a2, g = thrust_accel**2, gravity
-    # Falling with every bit of thrust horizontal: T² = 2L/a while gravity alone can pay for the drop by then.
-    free = 2.0 * horizontal / thrust_accel
-    if drop > 0 and g * free <= 2.0 * drop:
-        return math.sqrt(free)
-    # Otherwise x = T² solves (a² − g²) x² − 4 g·(−drop) x − 4 (drop² + L²) = 0, i.e. a² T⁴ = (g T² − 2 drop)² + 4 L².
-    rise = -drop
-    root = math.sqrt(g * g * rise * rise + (a2 - g * g) * (rise * rise + horizontal * horizontal))
-    x = 2.0 * (g * rise + root) / (a2 - g * g)
-    return math.sqrt(max(x, 0.0))
+    _check(length, height, thrust_accel, gravity)
+    fall = math.sqrt(2.0 * gravity * height)
+    return (math.sqrt(fall * fall + 2.0 * thrust_accel * length) - fall) / thrust_accel
 
 
-def _opening_rectangle(gate: Gate, shift_xy: float) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned (low, high) x-y corners holding every point of ``gate``'s opening, shifted by up to ``shift_xy``."""
-    # The opening's horizontal footprint is the segment centre ± inner/2 · lateral; its bounding box, widened.
-    half = gate.inner / 2.0 * np.abs(gate.lateral[:2]) + shift_xy
-    return gate.center[:2] - half, gate.center[:2] + half
+def min_ticks_from_rest(
+    length: float, height: float, thrust_accel: float, gravity: float, dt: float, drag_per_mass: float = 0.0
+) -> int:
+    """Least number of physics ticks of length ``dt`` (semi-implicit Euler) in which a mass at rest flies a path of
+    ``length`` m, never more than ``height`` m below its start (:func:`min_time_from_rest` tick by tick).
+
+    ``drag_per_mass`` (1/m) is the largest body-axis drag coefficient over the mass: the per-tick argument needs the
+    drag of one tick not to reverse a velocity component (``dt·drag_per_mass·|v| ≤ 2``). Should the speed bound ever
+    pass that limit before ``length`` is covered, the ticks proven so far are returned (a weaker bound, still a bound).
+    """
+    _check(length, height, thrust_accel, gravity)
+    if dt <= 0 or drag_per_mass < 0:
+        raise ValueError(f"need dt > 0 and drag_per_mass >= 0, got {dt}, {drag_per_mass}")
+    a, g = thrust_accel, gravity
+    top_speed = math.inf if drag_per_mass == 0 else 2.0 / (dt * drag_per_mass)
+    path, speed_sq, ticks = 0.0, 0.0, 0  # bounds on s_n and |v_n|², after n ticks
+    while path < length:
+        if math.sqrt(speed_sq) > top_speed:
+            return ticks + 1  # s_n <= path < length: the lap is not done after n ticks
+        ticks += 1
+        speed_sq = 2.0 * a * path + 2.0 * g * height + ticks * dt * dt * (a * a - g * g)
+        path += dt * math.sqrt(speed_sq)
+    return ticks
 
 
-def _rectangle_gap(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:
-    """Euclidean distance between two axis-aligned rectangles (0 when they overlap)."""
+def _opening_box(gate: Gate, shift_xy: float, shift_z: float) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned (low, high) corners holding every point of ``gate``'s opening, shifted by up to the given ranges."""
+    # The opening is the square centre ± inner/2 · lateral ± inner/2 · z; its bounding box, widened by the shift.
+    half_xy = gate.inner / 2.0 * np.abs(gate.lateral[:2]) + shift_xy
+    half = np.array([half_xy[0], half_xy[1], gate.inner / 2.0 + shift_z])
+    return gate.center - half, gate.center + half
+
+
+def _box_gap(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:
+    """Euclidean distance between two axis-aligned boxes (0 when they overlap)."""
     gap = np.maximum(0.0, np.maximum(b[0] - a[1], a[0] - b[1]))
     return float(np.linalg.norm(gap))
 
 
 def lap_geometry(track: Track, gate_shift: float = 0.0, gate_shift_z: float | None = None) -> tuple[float, float]:
-    """``(L, drop)``: a lower bound on any lap's horizontal length (m) and an upper bound on its net descent (m).
+    """``(L, H)``: a lower bound on any lap's path length (m) and an upper bound on how far below its start the drone
+    can ever be (m: the highest start above the ground, which a successful lap never touches).
 
     ``gate_shift`` / ``gate_shift_z`` are the env's ranges of random gate displacement (as in ``RaceEnv``).
     """
     shift_z = gate_shift if gate_shift_z is None else gate_shift_z
     start = track.start
-    regions = [(start.center[:2] - start.spread[:2], start.center[:2] + start.spread[:2])]
-    regions += [_opening_rectangle(g, gate_shift) for g in track.gates]
-    length = sum(_rectangle_gap(a, b) for a, b in zip(regions, regions[1:], strict=False))
-    last = track.gates[-1]
-    lowest_end = max(0.0, float(last.center[2]) - shift_z - last.inner / 2.0)  # below z = 0 is out of bounds
-    highest_start = float(start.center[2] + start.spread[2])
-    return length, highest_start - lowest_end
+    boxes = [(start.center - start.spread, start.center + start.spread)]
+    boxes += [_opening_box(g, gate_shift, shift_z) for g in track.gates]
+    length = sum(_box_gap(a, b) for a, b in zip(boxes, boxes[1:], strict=False))
+    return length, max(0.0, float(start.center[2] + start.spread[2]))
 
 
 def lap_time_lower_bound(
@@ -99,17 +122,20 @@ def lap_time_lower_bound(
     gate_shift_z: float | None = None,
     physics_freq: int = 200,
 ) -> float:
-    """Lap time (s) below which no lap of ``track`` can be flown by the airframe ``params`` (module docstring)."""
+    """Lap time (s) below which no lap of ``track`` can be flown by the airframe ``params`` (module docstring): a whole
+    number of physics ticks; a lap of exactly this time is possible as far as the bound can tell."""
     params = params or QuadrotorParams()
-    length, drop = lap_geometry(track, gate_shift, gate_shift_z)
-    bound = min_time_from_rest(length, drop, params.max_thrust / params.mass, params.gravity)
-    return max(0.0, bound - 0.5 / physics_freq)
+    length, height = lap_geometry(track, gate_shift, gate_shift_z)
+    drag = max(params.drag_coefficients) / params.mass
+    ticks = min_ticks_from_rest(length, height, params.max_thrust / params.mass, params.gravity, 1.0 / physics_freq,
+                                drag)  # fmt: skip
+    return ticks / physics_freq
 
 
 @functools.cache
 def env_lap_time_bound(env_id: str) -> float:
     """:func:`lap_time_lower_bound` of a registered env id, from its ``RaceEnv`` kwargs (cached per process, which
-    holds one env version)."""
+    holds one env version). It does not depend on the id's obstacles."""
     if env_id not in ENV_KWARGS:
         raise ValueError(f"env_id {env_id!r} is not a racebench id")
     defaults = {k: p.default for k, p in inspect.signature(RaceEnv.__init__).parameters.items()}

@@ -24,8 +24,8 @@ A record is the unit every table, figure and leaderboard number is computed from
 The slot name is derived from (policy, env id, env version, seed protocol, seed set, seed, renderer): one record
 per slot is counted, and an old-layout record copied or renamed into another slot's file is detected.
 :func:`validate_record` checks the schema, the digest and the consistency of the outcome with the env (a success
-passed every gate, its lap time is a physics tick of its last control step and no faster than the airframe can
-fly the track, :mod:`racebench.envs.lap_bound`; a failure passed fewer gates, and one that neither crashed nor errored
+passed every gate, its lap time is a physics tick of its last control step and not below the track's lap-time lower
+bound, :mod:`racebench.envs.lap_bound`; a failure passed fewer gates, and one that neither crashed nor errored
 ran to the time limit; ...). The digest catches corruption and casual edits; a determined forger can recompute
 it, which the consistency checks and the replay of committed claims (``racebench leaderboard verify``,
 ``tests/test_checkpoints.py``) are for.
@@ -203,7 +203,7 @@ def seal(record: dict[str, Any]) -> dict[str, Any]:
 @functools.cache
 def env_facts(env_id: str) -> dict[str, Any]:
     """What a record of ``env_id`` can be checked against: gates per lap, control period, physics rate, step limit
-    and the least possible lap time (:mod:`racebench.envs.lap_bound`)."""
+    and the lower bound on its lap time (:mod:`racebench.envs.lap_bound`)."""
     if env_id not in ENV_KWARGS:
         raise InvalidRecordError(f"env_id {env_id!r} is not a racebench id")
 
@@ -295,10 +295,12 @@ def validate_record(record: Any, file_name: str | None = None) -> dict[str, Any]
                 f"success lap_time {lap} is not a physics tick (1/{freq} s) of its last control step "
                 f"({steps} steps of {facts['control_dt']} s)"
             )
-        if lap < facts["lap_time_bound"]:
+        # The bound is a whole number of ticks too: compare ticks, so a lap of exactly the bound is accepted.
+        if ticks < round(facts["lap_time_bound"] * freq):
             raise bad(
-                f"success lap_time {lap} s is below {facts['lap_time_bound']:.3f} s, the least time any flight "
-                f"within the airframe's thrust needs on {record['env_id']} (racebench.envs.lap_bound)"
+                f"success lap_time {lap} s is below {facts['lap_time_bound']:.3f} s, the lower bound on any lap of "
+                f"{record['env_id']}: a flight from rest at full thrust along the straight gate-to-gate distance "
+                f"(racebench.envs.lap_bound)"
             )
     else:
         if lap is not None:

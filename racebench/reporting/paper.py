@@ -8,7 +8,11 @@ anything:
   (``baselines/experiments/ab-fast-update``: training seeds 1 and 2, same config and budget);
 * beyond the paper, the teacher–student policies ``vision-distill`` and ``vision-distill-ppo``
   (``baselines/checkpoints/<name>-<track>/eval``), each counted on its own track only;
-* the references: the floors ``follow`` and ``hover`` and the privileged planners (``results/<agent>``).
+* the references: the floors ``follow`` and ``hover`` and the privileged planners (``results/<agent>``);
+* two lap times no policy is measured against, shown under their names in Table II and the README block: the
+  **lap-time lower bound** (:mod:`racebench.envs.lap_bound`: no lap of the id can be faster) and **planner-fast's
+  line at full thrust** (its racing line timed as a point mass at the airframe's full thrust,
+  ``baselines/experiments/planner_fast_line_times.txt``: that one line's limit, not a bound).
 
 It writes ``table_ii``, ``table_iii`` and ``table_iv`` as Markdown, CSV and LaTeX, ``claims.md`` (the decision rule
 committed in the sweep file before the first run, applied by :func:`judge_claims`), ``at_a_glance.md`` (the README's
@@ -29,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from racebench.envs.lap_bound import env_lap_time_bound
 from racebench.envs.registration import DENSITIES, GATE_SHIFTS
 from racebench.evaluation.protocol import TRACK_ORDER, env_id_of, split_env_id
 from racebench.evaluation.results import load_records
@@ -71,6 +76,11 @@ TABLE_II_ROWS: tuple[tuple[str, str], ...] = (
     ("follow", "floor"), ("hover", "floor"), ("planner", "privileged"), ("planner-fast", "privileged"),
 )  # fmt: skip
 TABLE_III_ROWS: tuple[str, ...] = ("vision-ppo", "vision-no-gru", "vision-no-avoid", "vision-one-step")
+# Lap times no policy is measured against (lap_time_references): their row names, and the file with the line's.
+LOWER_BOUND = "lap-time lower bound"
+LINE_AT_FULL_THRUST = "planner-fast's line at full thrust"
+LINE_TIMES = Path("baselines/experiments/planner_fast_line_times.txt")
+LINE_TIMES_COLUMN = "planner-fast's line at full thrust (s)"
 ALPHA = 0.05
 
 
@@ -179,6 +189,29 @@ def cell(episodes: pd.DataFrame, method: str, env_id: str) -> Cell | None:
     )
 
 
+def lap_time_references(root: str | Path = ".") -> dict[str, dict[str, float]]:
+    """Per track, the two reference lap times of the main id: :data:`LOWER_BOUND` (computed: no lap can be faster,
+    ``docs/evaluation.md``) and :data:`LINE_AT_FULL_THRUST` (read from the committed :data:`LINE_TIMES`; absent when
+    that file is)."""
+    references: dict[str, dict[str, float]] = {
+        LOWER_BOUND: {track: env_lap_time_bound(env_id_of(track)) for track in TRACK_ORDER},
+        LINE_AT_FULL_THRUST: {},
+    }
+    path = Path(root) / LINE_TIMES
+    if path.is_file():
+        frame = pd.read_csv(path, skipinitialspace=True)
+        for env_id, value in zip(frame["env_id"], frame[LINE_TIMES_COLUMN], strict=True):
+            track, variant = split_env_id(env_id)
+            if variant == "default" and track in TRACK_ORDER:
+                references[LINE_AT_FULL_THRUST][track] = float(value)
+    return references
+
+
+def _reference_text(name: str, seconds: float | None) -> str:
+    """A reference lap time: the bound to its physics tick (5 ms), the line's as committed (10 ms)."""
+    return "–" if seconds is None else f"{seconds:.3f}" if name == LOWER_BOUND else f"{seconds:.2f}"
+
+
 def _csv_row(table: str, row: str, track: str, variant: str, found: Cell | None, paper_sr, paper_lt) -> dict:
     return {
         "table": table, "row": row, "track": track, "variant": variant,
@@ -190,8 +223,11 @@ def _csv_row(table: str, row: str, track: str, variant: str, found: Cell | None,
     }  # fmt: skip
 
 
-def table_ii(episodes: pd.DataFrame) -> tuple[pd.DataFrame, list[dict]]:
-    """Table II: lap time and success rate per track (own-track main ids), one row per method."""
+def table_ii(
+    episodes: pd.DataFrame, references: dict[str, dict[str, float]] | None = None
+) -> tuple[pd.DataFrame, list[dict]]:
+    """Table II: lap time and success rate per track (own-track main ids), one row per method; then the reference
+    lap times (:func:`lap_time_references`), lap time only."""
     display, rows = {}, []
     for method, kind in TABLE_II_ROWS:
         label = method if kind == "paper" else f"{method} ({kind})"
@@ -206,6 +242,13 @@ def table_ii(episodes: pd.DataFrame) -> tuple[pd.DataFrame, list[dict]]:
                     rows.append(_csv_row("II", method, track, "default", found, paper,
                                          PAPER_LAP_TIME.get(method, {}).get(track)))  # fmt: skip
         display[label] = line
+    for name, per_track in (references or {}).items():
+        line = {f"LT [s] {TRACK_NAMES[t]}": _reference_text(name, per_track.get(t)) for t in TRACK_ORDER}
+        display[f"{name} (reference)"] = {**line, **{f"SR [%] {TRACK_NAMES[t]}": "–" for t in TRACK_ORDER}}
+        for track in TRACK_ORDER:
+            row = _csv_row("II", name, track, "default", None, None, None)
+            seconds = per_track.get(track)
+            rows.append({**row, "lap_time_mean": None if seconds is None else round(seconds, 3)})
     return pd.DataFrame.from_dict(display, orient="index"), rows
 
 
@@ -434,10 +477,17 @@ def caption(which: str, episodes: pd.DataFrame) -> str:
     }[which]
     share = 100 * BUDGET_STEPS / PAPER_STEPS
     n = "100 episodes per main-id cell, 50 per density or gate-shift cell (references: 50 and 10)"
+    lap_references = (
+        f" Reference lap times: the {LOWER_BOUND} (no lap can be faster: a flight from rest at full thrust over the "
+        f"straight gate-to-gate distance, docs/evaluation.md) and {LINE_AT_FULL_THRUST} (its racing line timed as a "
+        f"point mass at full thrust; that one line's limit, not a bound)."
+        if which == "II"
+        else ""
+    )
     return (
         f"{what}. Trained configs: {BUDGET_STEPS / 1e6:.0f} M steps per run ({share:.0f} % of the paper's 100 M); "
         f"{n}; SR [95 % Wilson] for one training seed, the mean (range over seeds) for several; "
-        f"'· paper' the paper's number (10 trials)."
+        f"'· paper' the paper's number (10 trials).{lap_references}"
     )
 
 
@@ -450,10 +500,10 @@ METHOD_NOTES: dict[str, tuple[str, str]] = {  # budget per track, the command th
 }
 
 
-def at_a_glance(episodes: pd.DataFrame) -> str:
+def at_a_glance(episodes: pd.DataFrame, references: dict[str, dict[str, float]] | None = None) -> str:
     """The README's results block: the paper's method and its state-based baseline as trained here, each below the
     paper's numbers, the best racebench method (highest mean own-track success of the teacher-student rows) and the
-    privileged reference, per track."""
+    privileged reference, per track; then the reference lap times (:func:`lap_time_references`), when given."""
 
     def track_cells(method: str) -> list[str]:
         found = [cell(episodes, method, env_id_of(track)) for track in TRACK_ORDER]
@@ -482,6 +532,21 @@ def at_a_glance(episodes: pd.DataFrame) -> str:
         (f"`{best}`: best racebench method", track_cells(best), *METHOD_NOTES[best]),
         ("`planner-fast` (privileged reference)", track_cells("planner-fast"), *METHOD_NOTES["planner-fast"]),
     ]
+    reference_rows = {
+        LOWER_BOUND: (
+            "lap-time lower bound: no lap can be faster ([derivation](docs/evaluation.md#the-lap-time-lower-bound))",
+            "–",
+            "computed (`racebench.envs.lap_bound`)",
+        ),
+        LINE_AT_FULL_THRUST: (
+            "planner-fast's line at full thrust: a point mass on that one line (not a bound)",
+            "–",
+            "`python scripts/planner_line_times.py`",
+        ),
+    }
+    for name, per_track in (references or {}).items():
+        cells = [f"{_reference_text(name, per_track.get(t))} s" if t in per_track else "–" for t in TRACK_ORDER]
+        rows.append((reference_rows[name][0], cells, *reference_rows[name][1:]))
     names = " | ".join(TRACK_NAMES[t] for t in TRACK_ORDER)
     lines = [f"| method | {names} | budget per track | reproduce |", "| --- | --- | --- | --- | --- | --- |"]
     lines += [f"| {name} | {' | '.join(cells)} | {budget} | {command} |" for name, cells, budget, command in rows]
@@ -490,6 +555,8 @@ def at_a_glance(episodes: pd.DataFrame) -> str:
         "Success rate [95 % Wilson interval] on 50–100 unseen evaluation scenes of each track's main id (n per cell: "
         "[`results/table_ii.csv`](results/table_ii.csv); several training seeds: their mean and range) and mean lap "
         "time of the successful laps; one policy per track. '–' marks a run of the campaign not yet committed. "
+        "The last two rows are lap times, not policies: the lower bound below which record validation refuses a lap, "
+        "and planner-fast's racing line flown at the airframe's full thrust (the fastest that line allows). "
         "Generated by `racebench paper-tables` (no training); Tables II–IV, the paper's claims tested and the "
         "learning curves: [`results/`](results/README.md).",
     ]
@@ -516,18 +583,22 @@ def write_report(
     root, out = Path(root), Path(out)
     out.mkdir(parents=True, exist_ok=True)
     episodes = load_episodes(discover_sources(root))
+    references = lap_time_references(root)
     written = []
     for which, build in (("II", table_ii), ("III", table_iii), ("IV", table_iv)):
-        frame, rows = build(episodes)
+        frame, rows = build(episodes, references) if which == "II" else build(episodes)
         stem = out / f"table_{which.lower()}"
         text = caption(which, episodes)
+        table = pd.DataFrame(rows)
+        if which == "II":  # its reference rows have no counts: keep the counts integers
+            table[["seeds", "n"]] = table[["seeds", "n"]].astype("Int64")
         outputs = {".md": render(frame, set(), "md", text), ".tex": render(frame, set(), "latex", text),
-                   ".csv": pd.DataFrame(rows).to_csv(index=False)}  # fmt: skip
+                   ".csv": table.to_csv(index=False)}  # fmt: skip
         for suffix, content in outputs.items():
             atomic_write(stem.with_suffix(suffix), content)
             written.append(stem.with_suffix(suffix))
     atomic_write(out / "claims.md", claims_markdown(judge_claims(episodes), budget_note(root)))
-    block = at_a_glance(episodes)
+    block = at_a_glance(episodes, references)
     atomic_write(out / "at_a_glance.md", block)
     written += [out / "claims.md", out / "at_a_glance.md"]
     if learning_curves(root, out, CAMPAIGN) is not None:

@@ -1,4 +1,4 @@
-"""Lap-time bounds along planner-fast's racing line: how much of the gap to a target is the airframe's.
+"""Planner-fast's racing line timed as a point mass: how much of a lap-time target's gap is the line's.
 
 For each scene, the fast expert's planned path (up to the finish crossing) is timed with the minimum-time
 speed profile of a point mass (no attitude dynamics; :func:`~racebench.agents.planner.thrust_limited_speeds` on the
@@ -6,15 +6,15 @@ spline's own curvature) at two budgets:
 
 * the planner's own thrust budget (``thrust_accel``, its drag, its 12 m/s cap): what its profile would be
   without the clearance caps and the jerk limits;
-* the airframe's full thrust ``T_max / m`` (24.1 m/s²) in any direction, gravity included, no drag: a lower
-  bound on any lap flown along that line (drag's help when braking aside, ≤ 0.05 v² m/s²). A target below it
-  would be infeasible on that line; a target above it leaves the gap to path shape and tracking.
+* the airframe's full thrust ``T_max / m`` (24.1 m/s²) in any direction, gravity included, no drag:
+  **planner-fast's line at full thrust**. It holds along that one line only: a target below it would need another
+  line, not a faster tracker. It is **not** a lower bound on the lap time (another line is shorter).
 
-Both hold along that one line only. The bound of any lap, on any line, is :mod:`racebench.envs.lap_bound` (about half of
-the airframe-ceiling column: the shortest line through the openings, a thrust aimed anywhere); record validation
-rejects a success below it.
+The last column is the lower bound on any lap, on any line, from :mod:`racebench.envs.lap_bound` (the time a
+point mass at full thrust from rest needs for the straight gate-to-gate distance; record validation refuses a
+success below it).
 
-    python scripts/lap_time_bound.py --episodes 20 > baselines/experiments/lap_time_bound.txt
+    python scripts/planner_line_times.py --episodes 20 > baselines/experiments/planner_fast_line_times.txt
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ import numpy as np
 
 import racebench  # noqa: F401  (registers the ids)
 from racebench.agents.planner import FastPlannerAgent, gate_crossings, thrust_limited_speeds
+from racebench.envs.lap_bound import env_lap_time_bound
 from racebench.evaluation import eval_seeds
 
 
@@ -36,11 +37,14 @@ def lap_time(arc: np.ndarray, speeds: np.ndarray) -> float:
 
 
 def main() -> None:
-    """Print per-track means of the planned profile's time and the two point-mass bounds."""
+    """Print per-track means of the planned profile's time and its two point-mass times, and the lower bound."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=20, help="evaluation seeds per main id")
     args = parser.parse_args()
-    print("env_id, n, planned profile (s), point mass at thrust budget (s), point mass at airframe ceiling (s)")
+    print(
+        "env_id, n, planned profile (s), planner-fast's line at its thrust budget (s), "
+        "planner-fast's line at full thrust (s), lap-time lower bound (s)"
+    )
     for track in ("S", "Circle", "J"):
         env = gym.make(f"RaceObs-{track}-v0", obs_mode="state")
         unwrapped = env.unwrapped
@@ -58,11 +62,12 @@ def main() -> None:
                 arc, tangent, curvature, planner.thrust_accel, planner.max_speed, 0.0, drag, params.gravity
             )
             full = params.max_thrust / params.mass
-            bound_top = thrust_limited_speeds(arc, tangent, curvature, full, 1e3, 0.0, 0.0, params.gravity)
-            rows.append((lap_time(arc, planner.speeds[:end]), lap_time(arc, budget), lap_time(arc, bound_top)))
+            full_thrust = thrust_limited_speeds(arc, tangent, curvature, full, 1e3, 0.0, 0.0, params.gravity)
+            rows.append((lap_time(arc, planner.speeds[:end]), lap_time(arc, budget), lap_time(arc, full_thrust)))
         env.close()
         mean = np.mean(rows, axis=0)
-        print(f"RaceObs-{track}-v0, {len(rows)}, {mean[0]:.2f}, {mean[1]:.2f}, {mean[2]:.2f}")
+        env_id = f"RaceObs-{track}-v0"
+        print(f"{env_id}, {len(rows)}, {mean[0]:.2f}, {mean[1]:.2f}, {mean[2]:.2f}, {env_lap_time_bound(env_id):.3f}")
 
 
 if __name__ == "__main__":
