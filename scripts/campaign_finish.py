@@ -8,7 +8,8 @@ run in the campaign clone)::
         --note "three sessions on 2 cores shared with other work; ... s paused while the test suite ran"
     racebench paper-tables
 
-It copies the run's small files, ``eval/`` and (seed 0) ``policy/`` to ``baselines/experiments/campaign-4m/<run>/``
+It copies the run's small files, ``eval/`` and (seed 0) ``policy/`` to ``baselines/experiments/<campaign>/<run>/`` (the
+campaign folder the run is in: ``campaign-4m`` or ``campaign-2``)
 (never ``checkpoints/`` or ``tb/``: a resume state committed there by ``scripts/campaign_state.py`` goes). For a
 seed-0 run it also writes ``baselines/checkpoints/<config>-<track>/``: the policy-only checkpoint, its evaluation,
 ``progress.csv``, ``config.yaml``, ``curriculum.json`` and a ``summary.json`` for the whole run (wall clock over all
@@ -33,7 +34,7 @@ import pandas as pd
 from racebench.reporting.paper import final_training_success
 from racebench.utils.files import sha256_file
 
-CAMPAIGN = Path("baselines/experiments/campaign-4m")
+EXPERIMENTS = Path("baselines/experiments")  # a run goes to <this>/<its campaign folder: campaign-4m, campaign-2>/
 CHECKPOINTS = Path("baselines/checkpoints")
 TRUST_FILE = Path("racebench/agents/trust.py")
 RUN_FILES = ("config.yaml", "curriculum.json", "progress.csv", "summary.json", "validation_curve.csv", "written.json")
@@ -127,13 +128,16 @@ def add_trusted(trust_file: Path, sha256: str, relative: str, replace: bool = Fa
 def finish(run_dir: Path, root: Path, trained_by: str, note: str, replace: bool = False) -> list[Path]:
     """Copy a finished run into the repository at ``root``; return the folders written. ``replace``: the run's
     checkpoint folder may hold another trusted policy, which it replaces."""
+    campaign = EXPERIMENTS / run_dir.resolve().parent.name
+    if not campaign.name.startswith("campaign-"):  # checked before anything is written
+        raise ValueError(f"{run_dir}: not in a campaign folder (baselines/experiments/campaign-*/<run>)")
     summary = finished_summary(run_dir)
     seed0 = summary["seed"] == 0
     name = f"{summary['config']}-{summary['track']}"
     policy = policy_file(run_dir, summary)
     if seed0:  # first, so that a refused replacement writes nothing
         add_trusted(root / TRUST_FILE, sha256_file(policy), f"{name}/{policy.name}", replace=replace)
-    dest = root / CAMPAIGN / run_dir.name
+    dest = root / campaign / run_dir.name
     copy_run(run_dir, dest, with_policy=seed0)
     if not seed0:  # extra seeds: summaries and evaluations, not checkpoints (issue 48)
         return [dest]
@@ -149,7 +153,7 @@ def finish(run_dir: Path, root: Path, trained_by: str, note: str, replace: bool 
     shutil.copytree(run_dir / "eval", target / "eval")
     whole = checkpoint_summary(
         summary, pd.read_csv(run_dir / "progress.csv"), checkpoint=str(CHECKPOINTS / name / policy.name),
-        run=str(CAMPAIGN / run_dir.name), trained_by=trained_by, note=note,
+        run=str(campaign / run_dir.name), trained_by=trained_by, note=note,
     )  # fmt: skip
     (target / "summary.json").write_text(json.dumps(whole, indent=2) + "\n")
     return [dest, target]

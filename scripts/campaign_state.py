@@ -10,7 +10,7 @@ can finish within the session where possible, and save only when it cannot.
 
 Usage (``--root`` is the campaign clone; ``--repo`` the main checkout that commits the state)::
 
-    RUN=baselines/experiments/campaign-4m/<run>
+    RUN=baselines/experiments/campaign-2/<run>     # or campaign-4m/<run>: any baselines/experiments/campaign-*
     python scripts/campaign_state.py save --repo /work/main --root /work/campaign /work/campaign/$RUN
     git -C /work/main commit -m "campaign: run ... stopped at ... steps, resume state in main"
     python scripts/campaign_state.py restore --repo /work/main --root /work/campaign   # on a new machine
@@ -33,7 +33,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-CAMPAIGN = "baselines/experiments/campaign-4m"
+CAMPAIGNS = "baselines/experiments/campaign-*"  # campaign-4m (campaign 1), campaign-2, ...
 SMALL_FILES = ("config.yaml", "curriculum.json", "progress.csv", "written.json", "validation_curve.csv")
 _CHECKPOINT = re.compile(r"^(?P<prefix>.+)_(?P<steps>\d+)_steps\.zip$")
 
@@ -66,7 +66,7 @@ def resume_files(run_dir: Path) -> list[Path]:
 
 def tracked_state(repo: Path) -> list[str]:
     """Paths (relative to ``repo``) of the resume checkpoints ``repo``'s index holds: the state ``main`` carries."""
-    listed = git(repo, "ls-files", "--", f"{CAMPAIGN}/*/checkpoints/*").splitlines()
+    listed = git(repo, "ls-files", "--", f"{CAMPAIGNS}/*/checkpoints/*").splitlines()
     return sorted(path for path in listed if (repo / path).is_file())
 
 
@@ -98,7 +98,7 @@ def restore(repo: Path, root: Path) -> list[Path]:
     """Copy the state ``repo`` carries into ``root``; a file already there must have the same content."""
     pairs = [(repo / path, root / path) for path in state_files(repo)]
     if not pairs:
-        raise ValueError(f"{repo}: carries no resume state (no file under {CAMPAIGN}/*/checkpoints/ is tracked)")
+        raise ValueError(f"{repo}: carries no resume state (no file under {CAMPAIGNS}/*/checkpoints/ is tracked)")
     for source, target in pairs:  # check everything before writing anything
         if target.exists() and target.read_bytes() != source.read_bytes():
             raise ValueError(f"{target}: exists with other content; move it away to restore the state")

@@ -58,11 +58,11 @@ def root(tmp_path: Path) -> Path:
 
 
 def test_seed0_run_becomes_a_trusted_checkpoint(tmp_path: Path, root: Path) -> None:
-    run = write_run(tmp_path / "campaign", seed=0)
+    run = write_run(tmp_path / "campaign-4m", seed=0)
     before = trusted(root / finish_script.TRUST_FILE)
     assert finish_script.main([str(run), "--root", str(root), "--trained-by", "sweep X", "--note", "two sessions"]) == 0
 
-    dest = root / finish_script.CAMPAIGN / run.name
+    dest = root / (finish_script.EXPERIMENTS / "campaign-4m") / run.name
     assert sorted(p.name for p in dest.iterdir()) == [
         "config.yaml",
         "curriculum.json",
@@ -96,10 +96,10 @@ def test_seed0_run_becomes_a_trusted_checkpoint(tmp_path: Path, root: Path) -> N
 
 
 def test_extra_seed_commits_summaries_not_checkpoints(tmp_path: Path, root: Path) -> None:
-    run = write_run(tmp_path / "campaign", seed=1)
+    run = write_run(tmp_path / "campaign-4m", seed=1)
     before = (root / finish_script.TRUST_FILE).read_text()
     assert finish_script.main([str(run), "--root", str(root), "--trained-by", "t", "--note", "n"]) == 0
-    dest = root / finish_script.CAMPAIGN / run.name
+    dest = root / (finish_script.EXPERIMENTS / "campaign-4m") / run.name
     assert (dest / "summary.json").is_file() and (dest / "eval" / "summary.csv").is_file()
     assert not (dest / "policy").exists() and not (root / "baselines/checkpoints").exists()
     assert (root / finish_script.TRUST_FILE).read_text() == before
@@ -107,7 +107,7 @@ def test_extra_seed_commits_summaries_not_checkpoints(tmp_path: Path, root: Path
 
 @pytest.mark.parametrize("missing", ["summary.json", "eval/summary.csv", "policy/fixture-ppo-Circle.zip"])
 def test_unfinished_run_is_refused(tmp_path: Path, root: Path, missing: str, capsys: pytest.CaptureFixture) -> None:
-    run = write_run(tmp_path / "campaign", seed=0)
+    run = write_run(tmp_path / "campaign-4m", seed=0)
     (run / missing).unlink()
     assert finish_script.main([str(run), "--root", str(root), "--trained-by", "t", "--note", "n"]) == 1
     assert capsys.readouterr().err.count("\n") == 1
@@ -115,7 +115,7 @@ def test_unfinished_run_is_refused(tmp_path: Path, root: Path, missing: str, cap
 
 
 def test_a_summary_without_its_fields_is_one_line(tmp_path: Path, root: Path, capsys: pytest.CaptureFixture) -> None:
-    run = write_run(tmp_path / "campaign", seed=0)
+    run = write_run(tmp_path / "campaign-4m", seed=0)
     (run / "summary.json").write_text(json.dumps({"seed": 0}))
     assert finish_script.main([str(run), "--root", str(root), "--trained-by", "t", "--note", "n"]) == 1
     err = capsys.readouterr().err
@@ -140,12 +140,12 @@ def test_long_trust_entries_wrap_within_the_line_length(root: Path) -> None:
 def test_replace_swaps_the_trusted_policy_of_a_folder_and_nothing_else(tmp_path: Path, root: Path) -> None:
     """Issue 48's new S runs replace the committed S checkpoints: refused without --replace (nothing written),
     with it the old digest leaves the trust list, the new one enters, and no old file stays in the folder."""
-    first = write_run(tmp_path / "one", seed=0)
+    first = write_run(tmp_path / "one" / "campaign-4m", seed=0)
     assert finish_script.main([str(first), "--root", str(root), "--trained-by", "t", "--note", "n"]) == 0
     target = root / "baselines/checkpoints/fixture-ppo-Circle"
     (target / "old-notes.txt").write_text("from the replaced run")
     before = trusted(root / finish_script.TRUST_FILE)
-    second = write_run(tmp_path / "two", seed=0)
+    second = write_run(tmp_path / "two" / "campaign-4m", seed=0)
     (second / "policy" / "fixture-ppo-Circle.zip").write_bytes(b"a retrained policy")
     argv = [str(second), "--root", str(root), "--trained-by", "t2", "--note", "n"]
     assert finish_script.main(argv) == 1
@@ -167,3 +167,13 @@ def test_replace_drops_a_wrapped_entry_too(root: Path) -> None:
     assert finish_script.add_trusted(trust_file, "b" * 64, long_path, replace=True)
     entries = trusted(trust_file)
     assert "a" * 64 not in entries and entries["b" * 64] == long_path
+
+
+def test_a_run_goes_to_its_own_campaign_folder(tmp_path: Path, root: Path, capsys: pytest.CaptureFixture) -> None:
+    """Campaign 2's runs land in baselines/experiments/campaign-2; a run outside a campaign-* folder is refused."""
+    run = write_run(tmp_path / "campaign-2", seed=1)
+    assert finish_script.main([str(run), "--root", str(root), "--trained-by", "sweep", "--note", "n"]) == 0
+    assert (root / finish_script.EXPERIMENTS / "campaign-2" / run.name / "summary.json").is_file()
+    stray = write_run(tmp_path / "elsewhere", seed=1)
+    assert finish_script.main([str(stray), "--root", str(root), "--trained-by", "sweep", "--note", "n"]) == 1
+    assert "not in a campaign folder" in capsys.readouterr().err

@@ -274,3 +274,19 @@ def test_validation_points_flown_before_an_error_are_kept(tmp_path: Path, monkey
     with pytest.raises(ValueError, match="ended in an error"):
         validation.validation_curve(run, every=1_000_000, episodes=2, trust_code=True)
     assert pd.read_csv(run / "validation_curve.csv")["timesteps"].tolist() == [999_424]
+
+
+def test_a_table_never_mixes_env_versions() -> None:
+    """Campaign 1's report reads env version 2's references (results/env-v2); the current ones are version 3."""
+    from racebench.evaluation.results import check_one_env_version, read_summaries
+    from racebench.reporting.paper import Source, load_episodes
+
+    assert check_one_env_version({"a": [3, 3], "b": [3]}) == 3 and check_one_env_version({"a": []}) is None
+    with pytest.raises(ValueError, match=r"env version 2: a; env version 3: b\): a table is of one env version"):
+        check_one_env_version({"a": [2], "b": [3]})
+    old, new = ROOT / "results" / "env-v2" / "hover", ROOT / "results" / "hover"
+    assert set(load_episodes([Source("hover", old)])["method"]) == {"hover"}
+    with pytest.raises(ValueError, match="several env versions"):
+        load_episodes([Source("hover", old), Source("hover", new)])
+    with pytest.raises(ValueError, match="several env versions"):
+        read_summaries([old, new])

@@ -128,6 +128,22 @@ def _directory_label(path: Path) -> str:
     return name
 
 
+def check_one_env_version(versions: dict[str, Iterable[int]]) -> int | None:
+    """The one env version of the records of several folders (``{folder: their env versions}``), else a ``ValueError``.
+
+    A table never mixes env versions: their scenes (and perhaps their physics) differ, so their cells do not compare.
+    Returns ``None`` when no folder holds a record.
+    """
+    by_version: dict[int, list[str]] = {}
+    for folder, found in versions.items():
+        for version in sorted({int(v) for v in found}):
+            by_version.setdefault(version, []).append(folder)
+    if len(by_version) > 1:
+        parts = "; ".join(f"env version {v}: {', '.join(folders)}" for v, folders in sorted(by_version.items()))
+        raise ValueError(f"records of several env versions in one table ({parts}): a table is of one env version")
+    return next(iter(by_version), None)
+
+
 def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
     """Summaries of result directories, recomputed from their validated records.
 
@@ -138,6 +154,7 @@ def read_summaries(paths: Iterable[str | Path]) -> pd.DataFrame:
     loaded = [load_result_dir(path) for path in paths]
     if not loaded:
         raise ValueError("no result directories given")
+    check_one_env_version({str(path): episodes["env_version"] for path, episodes in loaded})
     # One label, several policies. When each policy was flown on tracks no other one was (a sweep's per-track runs
     # of one config and seed, each evaluated on its own track), the label stays one row, as the paper's Table II
     # has one row per method with a policy per track. When their tracks overlap (e.g. per-track students also

@@ -7,8 +7,12 @@ anything:
   on its own track's nine ids, ``baselines/sweeps/campaign-4m.yaml``), plus the A/B runs of ``vision-ppo`` on S
   (``baselines/experiments/ab-fast-update``: training seeds 1 and 2, same config and budget);
 * beyond the paper, the teacher–student policies ``vision-distill`` and ``vision-distill-ppo``
-  (``baselines/checkpoints/<name>-<track>/eval``), each counted on its own track only;
-* the references: the floors ``follow`` and ``hover`` and the privileged planners (``results/<agent>``);
+  (``<references>/<name>-<track>/eval``), each counted on its own track only;
+* the references: the floors ``follow`` and ``hover`` and the privileged planners (``<references>/<agent>``);
+
+where ``<references>`` holds those folders as flown on the campaign's env version: campaign 1 ran on env version 2,
+whose reference records are kept as history in ``results/env-v2`` (:data:`REFERENCES`). A report never mixes env
+versions: :func:`load_episodes` refuses records of two.
 * two lap times no policy is measured against, shown under their names in Table II and the README block: the
   **lap-time lower bound** (:mod:`racebench.envs.lap_bound`: no lap of the id can be faster) and **planner-fast's
   line at full thrust** (its racing line timed as a point mass at the airframe's full thrust,
@@ -36,13 +40,15 @@ import pandas as pd
 from racebench.envs.lap_bound import env_lap_time_bound
 from racebench.envs.registration import DENSITIES, GATE_SHIFTS
 from racebench.evaluation.protocol import TRACK_ORDER, env_id_of, split_env_id
-from racebench.evaluation.results import load_records
+from racebench.evaluation.results import check_one_env_version, load_records
 from racebench.evaluation.statistics import holm_adjust, paired_outcomes, trend_test, wilson_interval
 from racebench.reporting.tables import TRACK_NAMES, render
 from racebench.reporting.validation import RUN_FOLDER, learning_curves
 from racebench.utils.files import atomic_write
 
 CAMPAIGN = Path("baselines/experiments/campaign-4m")
+#: The reference and teacher–student evaluations on the campaign's env version (campaign 1: env version 2).
+REFERENCES = Path("results/env-v2")
 BUDGET_STEPS = 4_000_000
 PAPER_STEPS = 100_000_000
 # The paper's numbers (Sun et al., Tables II-IV; 10 trials per cell): success rate [%] and lap time [s].
@@ -94,7 +100,9 @@ class Source:
     track: str | None = None  # a per-track policy: only its own track's episodes count
 
 
-def discover_sources(root: str | Path = ".", campaign: str | Path = CAMPAIGN) -> list[Source]:
+def discover_sources(
+    root: str | Path = ".", campaign: str | Path = CAMPAIGN, references: str | Path = REFERENCES
+) -> list[Source]:
     """Every evaluation folder the report reads under the checkout ``root`` (see the module docstring)."""
     root = Path(root)
     sources = []
@@ -108,12 +116,12 @@ def discover_sources(root: str | Path = ".", campaign: str | Path = CAMPAIGN) ->
             sources.append(Source("vision-ppo", run / "eval", seed, "S"))
     for method in ("vision-distill", "vision-distill-ppo"):
         for track in TRACK_ORDER:
-            folder = root / "baselines/checkpoints" / f"{method}-{track}" / "eval"
+            folder = root / references / f"{method}-{track}" / "eval"
             if (folder / "summary.csv").is_file():
                 sources.append(Source(method, folder, None, track))
     for agent in ("follow", "hover", "planner", "planner-fast"):
-        if (root / "results" / agent / "summary.csv").is_file():
-            sources.append(Source(agent, root / "results" / agent))
+        if (root / references / agent / "summary.csv").is_file():
+            sources.append(Source(agent, root / references / agent))
     return sources
 
 
@@ -121,8 +129,9 @@ def load_episodes(sources: list[Source]) -> pd.DataFrame:
     """The validated episodes of ``sources``: method, training_seed, env_id, track, variant, seed, success, lap_time
     (a per-track policy's episodes on other tracks left out: the paper flies each policy on its own track)."""
     frames = []
-    for source in sources:
-        records = load_records(source.folder)
+    loaded = [(source, load_records(source.folder)) for source in sources]
+    check_one_env_version({str(source.folder): records["env_version"] for source, records in loaded})
+    for source, records in loaded:
         if records.empty:
             continue
         parts = [split_env_id(env_id) for env_id in records["env_id"]]
