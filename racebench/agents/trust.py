@@ -11,6 +11,7 @@ import hashlib
 import importlib
 import importlib.util
 import json
+import os
 import re
 import site
 import sys
@@ -473,19 +474,61 @@ def _refuse_untrusted(spec: str, why: str, what: str = "agent", onnx_hint: bool 
 
 #: In a run folder: ``{path: sha256}`` of every checkpoint and statistics file the run wrote itself (paths relative
 #: to the folder), so that resuming the run trusts its own pickles without ``--trust-code`` (:func:`record_written`).
+#: The folder's list alone vouches for nothing (whoever can write the folder can write the list): a file is trusted
+#: through it only if this machine's own store (:func:`trust_store`, outside any repository) also records its sha256.
 WRITTEN_FILE = "written.json"
+
+#: Environment variable naming the machine-local state folder (default ``$XDG_STATE_HOME/racebench`` or
+#: ``~/.local/state/racebench``).
+STATE_DIR_ENV = "RACEBENCH_STATE_DIR"
+
+
+def state_dir() -> Path:
+    """racebench's machine-local state folder, outside any repository: ``$RACEBENCH_STATE_DIR``, else
+    ``$XDG_STATE_HOME/racebench``, else ``~/.local/state/racebench``."""
+    if os.environ.get(STATE_DIR_ENV):
+        return Path(os.environ[STATE_DIR_ENV]).expanduser()
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base).expanduser() / "racebench"
+
+
+def trust_store() -> Path:
+    """The folder in which this machine records the sha256 of every pickle racebench wrote itself (one empty file
+    per sha256, created with the folder on first use, private to the user): what a pull request cannot change."""
+    return state_dir() / "written"
+
+
+def _store(*digests: str) -> None:
+    """Record ``digests`` in :func:`trust_store` (idempotent; safe for concurrent writers)."""
+    store = trust_store()
+    store.mkdir(parents=True, exist_ok=True, mode=0o700)
+    for digest in digests:
+        if not re.fullmatch(r"[0-9a-f]{64}", digest):
+            raise ValueError(f"not a sha256: {digest!r}")
+        (store / digest).touch()
+
+
+def _stored(digests: set[str]) -> frozenset[str]:
+    """Those of ``digests`` that :func:`trust_store` records."""
+    store = trust_store()
+    return frozenset(d for d in digests if (store / d).is_file())
 
 
 def record_written(folder: str | Path, *paths: str | Path) -> None:
-    """Add the sha256 of each file in ``paths`` (written by this process) to ``folder``'s :data:`WRITTEN_FILE`.
+    """Add the sha256 of each file in ``paths`` (written by this process) to ``folder``'s :data:`WRITTEN_FILE` and to
+    this machine's :func:`trust_store`.
 
-    The manifest vouches for what the run wrote, not for the folder: a pickle copied in afterwards is not listed.
+    The manifest vouches for what the run wrote, not for the folder: a pickle copied in afterwards is not listed,
+    and a listed one that this machine did not write is not recorded in its store.
     """
     folder = Path(folder)
     written = _read_written(folder)
+    added = []
     for path in map(Path, paths):
         key = str(path.relative_to(folder)) if path.is_relative_to(folder) else str(path.resolve())
         written[key] = _sha256_bytes(path.read_bytes())
+        added.append(written[key])
+    _store(*added)
     atomic_write(folder / WRITTEN_FILE, json.dumps(written, indent=1, sort_keys=True))
 
 
@@ -501,8 +544,31 @@ def _read_written(folder: Path) -> dict[str, str]:
 
 
 def written_sha256(folder: str | Path | None) -> frozenset[str]:
-    """The sha256 of the files the run in ``folder`` wrote itself (:func:`record_written`); none for ``None``."""
-    return frozenset() if folder is None else frozenset(_read_written(Path(folder)).values())
+    """The sha256 of the files the run in ``folder`` wrote itself: listed in its :data:`WRITTEN_FILE` and recorded
+    in this machine's :func:`trust_store` (:func:`record_written`, :func:`trust_folder`); none for ``None``."""
+    return frozenset() if folder is None else _stored(set(_read_written(Path(folder)).values()))
+
+
+def trust_folder(folder: str | Path) -> list[str]:
+    """Vouch, on this machine, for the files a run folder's :data:`WRITTEN_FILE` lists (``racebench trust``): the
+    maintainer's explicit step to resume a run that another machine wrote (a campaign's committed state).
+
+    Only listed files that exist in the folder with the listed bytes are recorded; returns their paths (relative to
+    the folder). A folder without a readable manifest raises :class:`ValueError`.
+    """
+    folder = Path(folder)
+    if not (folder / WRITTEN_FILE).is_file():
+        raise ValueError(f"{folder}: no {WRITTEN_FILE} to trust")
+    listed = _read_written(folder)
+    if not listed:
+        raise ValueError(f"{folder}: its {WRITTEN_FILE} lists no files")
+    trusted = []
+    for key, digest in sorted(listed.items()):
+        path = folder / key
+        if path.is_file() and not path.is_symlink() and sha256_file(path) == digest:
+            trusted.append(key)
+    _store(*(listed[key] for key in trusted))
+    return trusted
 
 
 def require_trusted(
@@ -517,7 +583,11 @@ def require_trusted(
     """
     digest = _sha256_bytes(data)
     if not (trust_code or digest in TRUSTED_CHECKPOINTS or digest in written):
-        raise _refuse_untrusted(str(path), why, what, onnx_hint=what == "agent")
+        error = _refuse_untrusted(str(path), why, what, onnx_hint=what == "agent")
+        if what != "agent":  # a run folder's file: its written.json vouches only for what this machine wrote
+            error = UntrustedCodeError(f"{error} (or, for a reviewed run folder from another machine, "
+                                       "racebench trust FOLDER)")  # fmt: skip
+        raise error
 
 
 def own_policy_trust(out: str | Path, checkpoint: str | Path, trust_code: bool = False) -> bool:

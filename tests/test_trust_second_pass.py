@@ -1,0 +1,95 @@
+"""Issue 70, trust second pass: nothing an outsider can write (a folder, a pull request, an entry) runs code or
+reaches outside the repository. Each code-running test plants a payload that creates a marker file, shows that it
+is refused by default, and that it does run once explicitly trusted (so the payload is live)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from payloads import evil_sb3_zip
+
+from racebench import cli
+from racebench.agents.trust import WRITTEN_FILE, _sha256_bytes, trust_store, written_sha256
+
+# ------------------------------------------------ A: a folder's written.json cannot vouch for itself
+
+
+def _planted_run(run: Path, marker: Path, name: str = "state-ppo_999424_steps.zip") -> Path:
+    """A run folder with a payload checkpoint that its own written.json lists, as a pull request could commit."""
+    (run / "checkpoints").mkdir(parents=True)
+    evil = evil_sb3_zip(run / "checkpoints" / name, marker)
+    (run / WRITTEN_FILE).write_text(json.dumps({f"checkpoints/{name}": _sha256_bytes(evil.read_bytes())}))
+    return evil
+
+
+def test_a_train_resume_refuses_a_payload_that_its_folders_written_json_lists(tmp_path: Path) -> None:
+    marker, run = tmp_path / "ran", tmp_path / "run"
+    evil = _planted_run(run, marker)
+    assert written_sha256(run) == frozenset()  # listed, but this machine never wrote it
+    argv = ["train", "--config", "state-ppo", "--num-processes", "1", "--steps", "64",
+            "--eval-episodes", "0", "--resume", str(evil), "--out", str(run)]  # fmt: skip
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    message = str(exc.value.code)
+    assert "--trust-code" in message and "racebench trust" in message and "\n" not in message
+    assert not marker.exists()
+    # The maintainer's explicit step: `racebench trust RUN_DIR` adopts the folder's list; the payload then runs.
+    assert cli.main(["trust", str(run)]) == 0
+    assert (trust_store() / _sha256_bytes(evil.read_bytes())).is_file()
+    with pytest.raises((SystemExit, Exception)):
+        cli.main(argv)
+    assert marker.exists()
+
+
+def test_a_trust_adopts_only_listed_files_with_their_listed_bytes(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "a.zip").write_bytes(b"a")
+    (run / "b.zip").write_bytes(b"b")
+    (run / WRITTEN_FILE).write_text(json.dumps({"a.zip": _sha256_bytes(b"a"), "b.zip": _sha256_bytes(b"other")}))
+    assert cli.main(["trust", str(run)]) == 0
+    assert written_sha256(run) == {_sha256_bytes(b"a")}
+    with pytest.raises(SystemExit, match=r"^racebench trust: .*no written\.json"):
+        cli.main(["trust", str(tmp_path / "nowhere")])
+
+
+def test_a_sweep_refuses_a_listed_payload_checkpoint(tmp_path: Path) -> None:
+    from test_ray_sweep import write_sweep
+
+    from racebench.training.sweep import load_sweep, run_sweep
+
+    path = write_sweep(tmp_path, tracks=["S"])
+    run, marker = tmp_path / "out" / "tiny-S-seed0", tmp_path / "ran"
+    _planted_run(run, marker, "tiny_128_steps.zip")
+    rows = run_sweep(load_sweep(path))
+    assert rows[0]["status"].startswith("failed: checkpoint") and "racebench trust" in rows[0]["status"]
+    assert not marker.exists()
+    # A swapped final policy that written.json lists, its summary marked for re-evaluation: refused too.
+    (run / "checkpoints" / "tiny_128_steps.zip").unlink()
+    evil = evil_sb3_zip(run / "tiny-S.zip", marker)
+    (run / WRITTEN_FILE).write_text(json.dumps({"tiny-S.zip": _sha256_bytes(evil.read_bytes())}))
+    (run / "summary.json").write_text(json.dumps({"timesteps": 256, "checkpoint": str(evil)}))
+    rows = run_sweep(load_sweep(path))
+    assert rows[0]["status"].startswith("failed: agent") and "--trust-code" in rows[0]["status"]
+    assert not marker.exists()
+    assert cli.main(["trust", str(run)]) == 0  # explicitly trusted, it is loaded (and runs)
+    run_sweep(load_sweep(path))
+    assert marker.exists()
+
+
+def test_a_paper_tables_validation_curve_refuses_a_listed_payload(tmp_path: Path) -> None:
+    marker, run = tmp_path / "ran", tmp_path / "state-ppo-S-seed0"
+    _planted_run(run, marker)
+    pd.DataFrame({"timesteps": [999_424], "mean_return": [3.0]}).to_csv(run / "progress.csv", index=False)
+    argv = ["paper-tables", "--root", str(tmp_path), "--out", str(tmp_path / "results"), "--no-readme",
+            "--validation-curve", str(run)]  # fmt: skip
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert "--trust-code" in str(exc.value.code) and "\n" not in str(exc.value.code)
+    assert not marker.exists()
+    with pytest.raises((SystemExit, Exception)):
+        cli.main([*argv, "--trust-code"])
+    assert marker.exists()
