@@ -93,3 +93,104 @@ def test_a_paper_tables_validation_curve_refuses_a_listed_payload(tmp_path: Path
     with pytest.raises((SystemExit, Exception)):
         cli.main([*argv, "--trust-code"])
     assert marker.exists()
+
+
+# ------------------------------------------------ B: a module:Class spec is resolved without importing anything
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _evil_package(folder: Path, name: str, marker: Path) -> None:
+    """A package whose ``__init__.py`` creates ``marker`` when imported, with a module ``mod`` holding ``X``."""
+    package = folder / name
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
+    (package / "mod.py").write_text(
+        "class X:\n    obs_mode = 'state'\n\n    def __init__(self, **kw):\n        pass\n\n"
+        "    def reset(self):\n        pass\n\n    def act(self, obs):\n        return None\n"
+    )
+
+
+@pytest.fixture
+def evil_package(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    import sys
+
+    name = f"evilpkg_{abs(hash(tmp_path)) % 10**8}"
+    marker = tmp_path / "ran"
+    _evil_package(tmp_path / "code", name, marker)
+    monkeypatch.syspath_prepend(str(tmp_path / "code"))
+    yield name, marker
+    for module in [m for m in sys.modules if m == name or m.startswith(f"{name}.")]:
+        del sys.modules[module]
+
+
+def test_b_a_dotted_spec_runs_nothing_before_the_trust_check(evil_package) -> None:
+    from racebench.agents import UntrustedCodeError, load_agent, policy_identity
+
+    name, marker = evil_package
+    spec = f"{name}.mod:X"
+    assert policy_identity(spec).kind == "python"
+    assert not marker.exists()
+    with pytest.raises(UntrustedCodeError, match="--trust-code"):
+        load_agent(spec)
+    assert not marker.exists()
+    for argv in (["evaluate", "--agent", spec, "--envs", "RaceObs-S-v0", "--episodes", "1"],
+                 ["fly", "--agent", spec], ["fly", "--agent", spec, "--agent-kwargs", '{"k": 1}']):  # fmt: skip
+        with pytest.raises(SystemExit) as exc:
+            cli.main(argv)
+        assert "--trust-code" in str(exc.value.code) and "\n" not in str(exc.value.code)
+        assert not marker.exists(), argv
+    load_agent(spec, trust_code=True)  # trusted, the package is imported: the payload is live
+    assert marker.exists()
+
+
+def test_b_a_leaderboard_entry_refuses_a_dotted_module_spec(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    import yaml
+    from leaderboard_fixtures import make_repo, meta
+
+    from racebench.leaderboard.entries import EntryError, load_entry, policy_sha256
+
+    board = make_repo(tmp_path)
+    root, marker = board.parents[1], tmp_path / "ran"
+    _evil_package(root / "baselines", "evilsub", marker)  # as a pull request would add it
+    spec = "evilsub.mod:X"
+    (root / "evilsub.mod").write_text("")  # so that the file part of the spec exists in the repository
+    monkeypatch.syspath_prepend(str(root / "baselines"))
+    monkeypatch.chdir(root)
+    folder = board / "evil"
+    folder.mkdir()
+    entry = {**meta("evil"), "policies": {"all": {"policy": spec, "records": ["results/none"]}}}
+    (folder / "entry.yaml").write_text(yaml.safe_dump(entry))
+    try:
+        with pytest.raises(EntryError, match="file.py:Class"):
+            load_entry(folder)
+        with pytest.raises(EntryError, match="file.py:Class"):
+            policy_sha256(spec, root, "evil")  # leaderboard add's check
+        for command in (["verify"], ["build", "--out", str(tmp_path / "site")]):
+            with pytest.raises(SystemExit) as exc:
+                cli.main(["leaderboard", *command, "--leaderboard", str(board)])
+            assert exc.value.code not in (0, None)
+        assert not marker.exists()
+    finally:
+        sys.modules.pop("evilsub", None)
+
+
+def test_b_baseline_configs_and_tracks_are_data_not_packages() -> None:
+    import configparser
+
+    from racebench.sim.track import track_path
+    from racebench.training.config import BASELINES, baseline_path
+    from racebench.training.run import load_config
+
+    assert not (ROOT / "baselines" / "__init__.py").exists() and not (ROOT / "tracks" / "__init__.py").exists()
+    setup = configparser.ConfigParser()
+    setup.read(ROOT / "setup.cfg")
+    packages = setup["options"]["packages"].split()
+    assert "racebench.configs" not in packages and "racebench.tracks" not in packages
+    assert "package_dir" not in setup["options"]
+    for name in BASELINES:  # loading a config by name still works, from the checkout's files
+        assert baseline_path(name) == ROOT / "baselines" / f"{name}.yaml"
+        assert load_config(name).name == name
+    assert track_path("S") == ROOT / "tracks" / "S.yaml"

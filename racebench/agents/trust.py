@@ -8,8 +8,6 @@ from __future__ import annotations
 import ast
 import functools
 import hashlib
-import importlib
-import importlib.util
 import json
 import os
 import re
@@ -99,10 +97,11 @@ def _python_source(spec: str) -> Path:
     if target.endswith(".py"):
         path = Path(target)
     else:
-        try:
-            found = importlib.util.find_spec(target)
-        except (ImportError, ValueError) as exc:
-            raise AgentLoadError(f"agent spec {spec!r}: cannot find module {target!r}: {exc}") from exc
+        # Found as import would find it, but without importing anything: importlib.util.find_spec imports a dotted
+        # name's parent packages (running their __init__.py) before the trust check could refuse them.
+        if not re.fullmatch(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*", target):
+            raise AgentLoadError(f"agent spec {spec!r}: {target!r} is not a module name")
+        found = _find_module(target, {})
         if found is None or not found.origin or not Path(found.origin).is_file():
             raise AgentLoadError(f"agent spec {spec!r}: cannot find module {target!r}")
         path = Path(found.origin)
