@@ -194,3 +194,54 @@ def test_b_baseline_configs_and_tracks_are_data_not_packages() -> None:
         assert baseline_path(name) == ROOT / "baselines" / f"{name}.yaml"
         assert load_config(name).name == name
     assert track_path("S") == ROOT / "tracks" / "S.yaml"
+
+
+# ------------------------------------------------ K: leaderboard build writes only regular files inside --out
+
+
+def _build(board: Path, out: Path) -> SystemExit | None:
+    try:
+        cli.main(["leaderboard", "build", "--out", str(out), "--leaderboard", str(board)])
+    except SystemExit as exc:
+        return exc
+    return None
+
+
+@pytest.mark.parametrize("name", ["index.html", "style.css"])
+def test_k_build_never_writes_through_a_symlinked_file(tmp_path: Path, name: str) -> None:
+    from leaderboard_fixtures import make_repo
+
+    board = make_repo(tmp_path / "repo")
+    site = board / "site"
+    assert _build(board, site) is None and (site / name).is_file()  # a plain build works
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    (site / name).unlink()
+    (site / name).symlink_to(victim)
+    exc = _build(board, site)
+    assert exc is not None and exc.code not in (0, None) and "symbolic link" in str(exc.code)
+    assert "\n" not in str(exc.code) and victim.read_text() == "keep me"
+
+
+def test_k_build_never_removes_through_a_symlinked_folder(tmp_path: Path) -> None:
+    from leaderboard_fixtures import make_repo
+
+    board = make_repo(tmp_path / "repo")
+    victim = tmp_path / "victim"
+    (victim / "entries").mkdir(parents=True)
+    (victim / "entries" / "precious.txt").write_text("keep me")
+    (victim / "index.html").write_text("keep me")
+    (board / "site").symlink_to(victim, target_is_directory=True)
+    exc = _build(board, board / "site")
+    assert exc is not None and "symbolic link" in str(exc.code)
+    assert (victim / "entries" / "precious.txt").read_text() == "keep me"
+    assert (victim / "index.html").read_text() == "keep me"
+    # A link deeper down (the entries folder) and a link among the site's parents inside the repository: refused.
+    (board / "site").unlink()
+    (board / "site").mkdir()
+    (board / "site" / "entries").symlink_to(victim / "entries", target_is_directory=True)
+    assert "symbolic link" in str(_build(board, board / "site").code)
+    assert (victim / "entries" / "precious.txt").exists()
+    (board / "deep").symlink_to(victim, target_is_directory=True)
+    assert "symbolic link" in str(_build(board, board / "deep" / "site").code)
+    assert not (victim / "site").exists()
