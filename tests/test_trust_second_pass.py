@@ -245,3 +245,43 @@ def test_k_build_never_removes_through_a_symlinked_folder(tmp_path: Path) -> Non
     (board / "deep").symlink_to(victim, target_is_directory=True)
     assert "symbolic link" in str(_build(board, board / "deep" / "site").code)
     assert not (victim / "site").exists()
+
+
+# ------------------------------------------------ C: a symlinked ONNX file flies the weights its hash covers
+
+
+def _external_onnx(folder: Path, hover: float) -> Path:
+    """The fixture hover policy with its weights saved as external data ``w.bin`` beside it."""
+    import onnx
+    from leaderboard_fixtures import write_hover_onnx
+    from onnx import numpy_helper
+
+    path = write_hover_onnx(folder / "model.onnx")
+    model = onnx.load(str(path))
+    for i, tensor in enumerate(model.graph.initializer):  # raw data, which onnx saves as external data
+        array = numpy_helper.to_array(tensor).copy()
+        if tensor.name == "b":
+            array[0] = hover
+        model.graph.initializer[i].CopyFrom(numpy_helper.from_array(array, tensor.name))
+    onnx.save(model, str(path), save_as_external_data=True, all_tensors_to_one_file=True, location="w.bin",
+              size_threshold=0)  # fmt: skip
+    return path
+
+
+def test_c_two_links_with_one_hash_fly_the_same_weights(tmp_path: Path) -> None:
+    import numpy as np
+
+    from racebench.agents import OnnxAgent
+
+    target = _external_onnx(tmp_path / "a", 0.5)
+    links = []
+    for name, hover in (("b", 0.1), ("c", 0.9)):  # beside each link, other weights of the same layout
+        other = _external_onnx(tmp_path / f"{name}-weights", hover)
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "w.bin").write_bytes((other.parent / "w.bin").read_bytes())
+        (tmp_path / name / "model.onnx").symlink_to(target)
+        links.append(tmp_path / name / "model.onnx")
+    agents = [OnnxAgent(path) for path in (target, *links)]
+    assert len({agent.sha256 for agent in agents}) == 1
+    actions = [agent.act(np.zeros(17, dtype=np.float32)) for agent in agents]
+    assert all(np.array_equal(actions[0], a) for a in actions) and actions[0][0] == pytest.approx(0.5)
