@@ -285,3 +285,74 @@ def test_c_two_links_with_one_hash_fly_the_same_weights(tmp_path: Path) -> None:
     assert len({agent.sha256 for agent in agents}) == 1
     actions = [agent.act(np.zeros(17, dtype=np.float32)) for agent in agents]
     assert all(np.array_equal(actions[0], a) for a in actions) and actions[0][0] == pytest.approx(0.5)
+
+
+# ------------------------------------------------ D, E: what the verified badge stands beside is signed
+
+
+@pytest.fixture()
+def signed_repo(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict:
+    from test_leaderboard_signing import repo, sign
+
+    made = repo.__wrapped__(tmp_path, monkeypatch)
+    sign(made, monkeypatch)
+    return made
+
+
+def _edit_entry(repo: dict, edit) -> None:
+    import yaml
+
+    from racebench.leaderboard.entries import dump_entry
+
+    path = repo["board"] / "method" / "entry.yaml"
+    meta = yaml.safe_load(path.read_text())
+    edit(meta)
+    path.write_text(dump_entry(meta))
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [("description", "Now the best method ever, trained with no teacher."), ("teacher", "planner"),
+     ("obs_mode", "vision"), ("authors", ["Someone Else"]), ("training_seeds", [0, 1, 2])],
+)  # fmt: skip
+def test_d_edited_metadata_of_a_verified_entry_is_refused(signed_repo, field: str, value) -> None:
+    from test_leaderboard_signing import row
+
+    assert row(signed_repo).tier == "verified"
+    _edit_entry(signed_repo, lambda meta: meta.update({field: value}))
+    verdict = row(signed_repo)
+    assert verdict.tier == "self-reported" and "changed after signing" in verdict.refusal
+
+
+def test_d_an_edited_budget_of_a_verified_entry_is_refused(signed_repo) -> None:
+    from test_leaderboard_signing import row
+
+    _edit_entry(signed_repo, lambda meta: meta["policies"]["S"].update({"steps": 1000, "wall_clock_s": 1.0}))
+    assert "changed after signing" in row(signed_repo).refusal
+
+
+def test_e_a_public_policy_line_pointed_elsewhere_is_refused(signed_repo) -> None:
+    from leaderboard_fixtures import write_hover_onnx, write_records
+    from test_leaderboard_signing import S, row
+
+    root = signed_repo["root"]
+    write_hover_onnx(root / "policies" / "other.onnx")  # another method's policy and records, all successes
+    write_records(root / "results" / "other", str(root / "policies" / "other.onnx"), S, 10, 10)
+
+    def point(meta):
+        meta["policies"]["S"].update({"policy": "policies/other.onnx", "records": ["results/other"]})
+
+    _edit_entry(signed_repo, point)
+    verdict = row(signed_repo)
+    assert verdict.tier == "self-reported" and "changed after signing" in verdict.refusal
+
+
+def test_de_committed_verified_entries_stay_verified() -> None:
+    from racebench.leaderboard.entries import load_config, load_entries
+    from racebench.leaderboard.signing import FORMAT1_VIEWS
+    from racebench.leaderboard.site import entry_row
+
+    board = ROOT / "results" / "leaderboard"
+    config = load_config(board)
+    verified = {e.name for e in load_entries(board) if entry_row(e, config).tier == "verified"}
+    assert verified == set(FORMAT1_VIEWS)
