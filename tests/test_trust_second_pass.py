@@ -356,3 +356,52 @@ def test_de_committed_verified_entries_stay_verified() -> None:
     config = load_config(board)
     verified = {e.name for e in load_entries(board) if entry_row(e, config).tier == "verified"}
     assert verified == set(FORMAT1_VIEWS)
+
+
+# ------------------------------------------------ G: the tables refuse incomplete cells
+
+
+def _hover_eval(folder: Path, episodes: int = 6) -> Path:
+    from racebench.evaluation import Evaluator
+
+    Evaluator("hover", ["RaceObs-S-Level1-v0"], episodes=episodes, out_dir=folder).run(progress=False)
+    return folder
+
+
+def test_g_a_table_refuses_a_cell_with_a_deleted_record(tmp_path: Path) -> None:
+    from racebench.evaluation.records import RECORDS_FILE
+    from racebench.evaluation.results import read_summaries
+
+    out = _hover_eval(tmp_path / "eval")
+    assert read_summaries([out])["n"].tolist() == [6]  # complete: fine
+    lines = (out / RECORDS_FILE).read_text().splitlines(keepends=True)
+    (out / RECORDS_FILE).write_text("".join(lines[:2] + lines[3:]))  # one episode's line deleted
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["table", str(out)])
+    message = str(exc.value.code)
+    assert "1 public seeds of the protocol are missing" in message and "\n" not in message
+    assert f"({json.loads(lines[2])['seed']})" in message  # names the missing seed
+
+
+def test_g_a_table_refuses_a_corrupted_record(tmp_path: Path) -> None:
+    from racebench.evaluation.records import RECORDS_FILE
+
+    out = _hover_eval(tmp_path / "eval")
+    lines = (out / RECORDS_FILE).read_text().splitlines(keepends=True)
+    record = json.loads(lines[1])
+    record["success"] = True  # edited without re-digesting
+    (out / RECORDS_FILE).write_text("".join([lines[0], json.dumps(record) + "\n", *lines[2:]]))
+    with pytest.raises(SystemExit, match="invalid record"):
+        cli.main(["table", str(out)])
+
+
+def test_g_paper_tables_refuse_a_cell_with_dropped_failures(tmp_path: Path) -> None:
+    from racebench.evaluation.records import RECORDS_FILE
+    from racebench.reporting.paper import Source, load_episodes
+
+    out = _hover_eval(tmp_path / "eval")
+    assert len(load_episodes([Source("hover", out)])) == 6
+    lines = (out / RECORDS_FILE).read_text().splitlines(keepends=True)
+    (out / RECORDS_FILE).write_text("".join(lines[:1] + lines[2:]))
+    with pytest.raises(ValueError, match="missing"):
+        load_episodes([Source("hover", out)])

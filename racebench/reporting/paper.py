@@ -112,7 +112,7 @@ def load_episodes(sources: list[Source]) -> pd.DataFrame:
     (a per-track policy's episodes on other tracks left out: the paper flies each policy on its own track)."""
     frames = []
     for source in sources:
-        records = load_records(source.folder)
+        records = load_records(source.folder, strict=True)  # a dropped record or seed is an error
         if records.empty:
             continue
         parts = [split_env_id(env_id) for env_id in records["env_id"]]
