@@ -405,3 +405,25 @@ def test_g_paper_tables_refuse_a_cell_with_dropped_failures(tmp_path: Path) -> N
     (out / RECORDS_FILE).write_text("".join(lines[:1] + lines[2:]))
     with pytest.raises(ValueError, match="missing"):
         load_episodes([Source("hover", out)])
+
+
+# ------------------------------------------------ H: an absurd episode count is a one-line error
+
+
+@pytest.mark.parametrize("episodes", ["100000000", "0", "-5"])
+def test_h_an_absurd_episode_count_is_a_one_line_error(episodes: str, tmp_path: Path) -> None:
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["evaluate", "--agent", "hover", "--envs", "RaceObs-S-v0", "--episodes", episodes,
+                  "--out", str(tmp_path / "out")])  # fmt: skip
+    message = str(exc.value.code)
+    assert "episodes per env id must be an integer from 1 to 100,000" in message and "\n" not in message
+
+
+def test_h_the_seed_lists_are_bounded() -> None:
+    from racebench.evaluation.seeds import private_seeds, public_seeds
+
+    with pytest.raises(ValueError, match="from 1 to 100,000"):
+        public_seeds(10**8)
+    with pytest.raises(ValueError, match="from 1 to 100,000"):
+        private_seeds("a-test-salt-that-is-long-enough-0123456789", 10**8)
+
