@@ -72,7 +72,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     _configure_logging(args.quiet, args.verbose)
     log.debug(f"racebench {racebench.__version__} from {Path(racebench.__file__).parent}, env version "
               f"{racebench.ENV_VERSION}, arguments {vars(args)}")  # fmt: skip
+    if args.command in EPISODE_SEED_COMMANDS and not 0 <= args.seed < 2**63:
+        raise SystemExit(f"racebench {args.command}: --seed must be an episode seed from 0 to 2**63 - 1 (Gymnasium "
+                         f"seeds are non-negative), got {args.seed}")  # fmt: skip
     return _commands()[args.command](args)
+
+
+#: The commands whose ``--seed`` is an episode's (reset) seed.
+EPISODE_SEED_COMMANDS = ("fly", "render", "scene")
 
 
 def _commands() -> dict[str, Callable[[argparse.Namespace], int]]:

@@ -427,3 +427,13 @@ def test_h_the_seed_lists_are_bounded() -> None:
     with pytest.raises(ValueError, match="from 1 to 100,000"):
         private_seeds("a-test-salt-that-is-long-enough-0123456789", 10**8)
 
+
+# ------------------------------------------------ I: a negative episode seed is a one-line error
+
+
+@pytest.mark.parametrize("command", [["fly"], ["render", "--out", "x.mp4"], ["scene"]])
+def test_i_a_negative_seed_is_a_one_line_error(command: list[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        cli.main([*command, "--seed", "-1"])
+    message = str(exc.value.code)
+    assert message.startswith(f"racebench {command[0]}: --seed must be") and "\n" not in message
