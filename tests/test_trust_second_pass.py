@@ -437,3 +437,30 @@ def test_i_a_negative_seed_is_a_one_line_error(command: list[str]) -> None:
         cli.main([*command, "--seed", "-1"])
     message = str(exc.value.code)
     assert message.startswith(f"racebench {command[0]}: --seed must be") and "\n" not in message
+
+
+# ------------------------------------------------ J: the site's embedded JSON cannot end its script element
+
+
+def test_j_a_description_cannot_break_out_of_the_data_block(tmp_path: Path) -> None:
+    import re
+
+    import yaml
+    from leaderboard_fixtures import add, make_repo, write_hover_onnx, write_records
+
+    from racebench.leaderboard.entries import dump_entry
+    from racebench.leaderboard.site import build_site
+
+    board = make_repo(tmp_path / "repo")
+    root = board.parents[1]
+    policy = write_hover_onnx(root / "policies" / "p.onnx")
+    write_records(root / "results" / "p", str(policy), "RaceObs-S-v0", 2, 10)
+    add(board, {"S": str(policy)}, "sneaky", [root / "results" / "p"])
+    description = "Fast & safe <!--<script>alert(1)</script> a > b"
+    meta = yaml.safe_load((board / "sneaky" / "entry.yaml").read_text())
+    (board / "sneaky" / "entry.yaml").write_text(dump_entry({**meta, "description": description}))
+    html = build_site(board, tmp_path / "site").read_text()
+    (block,) = re.findall(r'<script type="application/json" id="leaderboard-data">(.*?)</script>', html, re.S)
+    assert not set("<>&") & set(block)  # nothing in it the HTML parser reads as markup
+    assert json.loads(block)["entries"]["sneaky"]["description"] == description  # the same data
+    assert html.rstrip().endswith("</html>") and html.count("</script>") == 1

@@ -77,6 +77,12 @@ img, video { max-width: 100%; height: auto; border: 1px solid #d0d7de; }
 """
 
 
+def script_json(text: str) -> str:
+    """JSON made safe to embed in a ``<script>`` element: ``<``, ``>`` and ``&`` as JSON escapes (the same data), so
+    no text in it (``</script>``, ``<!--``) can end the element or change how the HTML parser reads it."""
+    return text.replace("&", "\\u0026").replace("<", "\\u003c").replace(">", "\\u003e")
+
+
 def check_output_folder(out: Path, root: Path) -> None:
     """Refuse to build into ``out`` if the build could write or delete through a symbolic link: ``out`` or a parent
     of it inside the repository ``root`` is a link, or ``out`` holds a link or anything but folders and regular files
@@ -142,7 +148,8 @@ def build_site(
     blob = json.dumps(
         {"racebench_version": racebench.__version__, "env_version": ENV_VERSION, "entries": data},
         sort_keys=True, allow_nan=False,
-    ).replace("</", "<\\/")  # fmt: skip
+    )
+    blob = script_json(blob)
     body = (
         "<h1>racebench leaderboard</h1>\n"
         f'<p class="lead">{len(entries)} methods · env version {ENV_VERSION} · racebench '
