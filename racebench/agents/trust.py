@@ -498,19 +498,10 @@ def trust_store() -> Path:
 
 
 def _store(*digests: str) -> None:
-    """Record ``digests`` in :func:`trust_store` (idempotent; safe for concurrent writers)."""
-    store = trust_store()
-    store.mkdir(parents=True, exist_ok=True, mode=0o700)
+    """Record ``digests`` (sha256 hex, as :func:`_read_written` keeps them) in :func:`trust_store` (idempotent)."""
+    trust_store().mkdir(parents=True, exist_ok=True, mode=0o700)
     for digest in digests:
-        if not re.fullmatch(r"[0-9a-f]{64}", digest):
-            raise ValueError(f"not a sha256: {digest!r}")
-        (store / digest).touch()
-
-
-def _stored(digests: set[str]) -> frozenset[str]:
-    """Those of ``digests`` that :func:`trust_store` records."""
-    store = trust_store()
-    return frozenset(d for d in digests if (store / d).is_file())
+        (trust_store() / digest).touch()
 
 
 def record_written(folder: str | Path, *paths: str | Path) -> None:
@@ -545,7 +536,8 @@ def _read_written(folder: Path) -> dict[str, str]:
 def written_sha256(folder: str | Path | None) -> frozenset[str]:
     """The sha256 of the files the run in ``folder`` wrote itself: listed in its :data:`WRITTEN_FILE` and recorded
     in this machine's :func:`trust_store` (:func:`record_written`, :func:`trust_folder`); none for ``None``."""
-    return frozenset() if folder is None else _stored(set(_read_written(Path(folder)).values()))
+    listed = set(_read_written(Path(folder)).values()) if folder is not None else set()
+    return frozenset(d for d in listed if (trust_store() / d).is_file())
 
 
 def trust_folder(folder: str | Path) -> list[str]:
@@ -556,16 +548,11 @@ def trust_folder(folder: str | Path) -> list[str]:
     the folder). A folder without a readable manifest raises :class:`ValueError`.
     """
     folder = Path(folder)
-    if not (folder / WRITTEN_FILE).is_file():
-        raise ValueError(f"{folder}: no {WRITTEN_FILE} to trust")
     listed = _read_written(folder)
     if not listed:
-        raise ValueError(f"{folder}: its {WRITTEN_FILE} lists no files")
-    trusted = []
-    for key, digest in sorted(listed.items()):
-        path = folder / key
-        if path.is_file() and not path.is_symlink() and sha256_file(path) == digest:
-            trusted.append(key)
+        raise ValueError(f"{folder}: no {WRITTEN_FILE} listing files to trust")
+    trusted = [key for key, digest in sorted(listed.items()) if (folder / key).is_file()
+               and not (folder / key).is_symlink() and sha256_file(folder / key) == digest]  # fmt: skip
     _store(*(listed[key] for key in trusted))
     return trusted
 
