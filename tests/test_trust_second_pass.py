@@ -464,3 +464,42 @@ def test_j_a_description_cannot_break_out_of_the_data_block(tmp_path: Path) -> N
     assert not set("<>&") & set(block)  # nothing in it the HTML parser reads as markup
     assert json.loads(block)["entries"]["sneaky"]["description"] == description  # the same data
     assert html.rstrip().endswith("</html>") and html.count("</script>") == 1
+
+
+# ------------------------------------------------ F: no entry chooses how many of its episodes are ranked
+
+
+@pytest.mark.parametrize("committed", [50, 80, 100])
+def test_f_a_self_reported_entry_is_ranked_on_the_protocols_first_seeds(tmp_path: Path, committed: int) -> None:
+    from leaderboard_fixtures import add, make_repo, write_hover_onnx, write_records
+
+    from racebench.leaderboard.entries import MAIN_IDS, load_config, load_entry
+    from racebench.leaderboard.ranking import RANKED_EPISODES, entry_row
+
+    assert RANKED_EPISODES == 50
+    board = make_repo(tmp_path / "repo")
+    root = board.parents[1]
+    policy = write_hover_onnx(root / "policies" / "p.onnx")
+    for env_id in MAIN_IDS:  # the first 35 seeds succeed, every later one fails
+        write_records(root / "results" / "p", str(policy), env_id, 35, committed)
+    add(board, str(policy), "method", [root / "results" / "p"])
+    row = entry_row(load_entry(board / "method"), load_config(board))
+    assert row.ranked and row.key()[0] == pytest.approx(35 / 50)  # however many were committed
+    assert all(cell.n == 50 for cell in row.cells.values())
+
+
+def test_f_an_entry_that_commits_fewer_than_the_protocols_count_is_not_ranked(tmp_path: Path) -> None:
+    from leaderboard_fixtures import add, make_repo, write_hover_onnx, write_records
+
+    from racebench.leaderboard.entries import MAIN_IDS
+    from racebench.leaderboard.site import build_site
+
+    board = make_repo(tmp_path / "repo")
+    root = board.parents[1]
+    policy = write_hover_onnx(root / "policies" / "p.onnx")
+    for env_id in MAIN_IDS:  # flew 100, committed only the flattering first 35 (all successes)
+        write_records(root / "results" / "p", str(policy), env_id, 35, 35)
+    add(board, str(policy), "method", [root / "results" / "p"])
+    html = build_site(board, tmp_path / "site").read_text()
+    assert 'id="ranking-self-reported"' not in html and 'id="unranked-self-reported"' in html
+    assert "fewer than the protocol&#x27;s 50 public episodes" in html or "fewer than the protocol's 50" in html
