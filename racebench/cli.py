@@ -72,7 +72,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     _configure_logging(args.quiet, args.verbose)
     log.debug(f"racebench {racebench.__version__} from {Path(racebench.__file__).parent}, env version "
               f"{racebench.ENV_VERSION}, arguments {vars(args)}")  # fmt: skip
+    if args.command in EPISODE_SEED_COMMANDS and not 0 <= args.seed < 2**63:
+        raise SystemExit(f"racebench {args.command}: --seed must be an episode seed from 0 to 2**63 - 1 (Gymnasium "
+                         f"seeds are non-negative), got {args.seed}")  # fmt: skip
     return _commands()[args.command](args)
+
+
+#: The commands whose ``--seed`` is an episode's (reset) seed.
+EPISODE_SEED_COMMANDS = ("fly", "render", "scene")
 
 
 def _commands() -> dict[str, Callable[[argparse.Namespace], int]]:
@@ -88,6 +95,7 @@ def _commands() -> dict[str, Callable[[argparse.Namespace], int]]:
         "distill": _distill,
         "evaluate": _evaluate,
         "sweep": _sweep,
+        "trust": _trust,
         "table": _table,
         "paper-tables": _paper_tables,
         "compare": _compare,
@@ -413,6 +421,20 @@ def _sweep(args: argparse.Namespace) -> int:
     failed = [row["run"] for row in rows if row["status"].startswith("failed")]
     if failed:
         raise SystemExit(f"racebench sweep: {len(failed)} of {len(rows)} runs failed: {', '.join(failed)}")
+    return 0
+
+
+def _trust(args: argparse.Namespace) -> int:
+    """``racebench trust``: record a reviewed run folder's listed checkpoints in this machine's trust store."""
+    from racebench.agents.trust import trust_folder, trust_store
+
+    for folder in args.folders:
+        try:
+            trusted = trust_folder(folder)
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"racebench trust: {exc}") from exc
+        _emit(f"{folder}: trusted {len(trusted)} file(s) on this machine ({trust_store()})"
+              + "".join(f"\n  {name}" for name in trusted))  # fmt: skip
     return 0
 
 

@@ -112,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_paper.add_argument("--no-readme", action="store_true", help="leave README.md's results block as it is")
     p_paper.add_argument(
         "--trust-code", action="store_true",
-        help="--validation-curve: unpickle checkpoints the run folder's written.json does not list (older runs)",
+        help="--validation-curve: unpickle checkpoints this machine did not write (older runs, other machines)",
     )  # fmt: skip
     p_paper.add_argument(
         "--validation-curve", nargs="+", default=None, metavar="RUN_DIR",
@@ -222,6 +222,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="where the networks train (default auto: CUDA when torch sees a GPU); envs always step on CPU",
     )
 
+    p_trust = sub.add_parser(
+        "trust", help="vouch, on this machine, for the checkpoints a reviewed run folder's written.json lists"
+    )
+    p_trust.add_argument(
+        "folders", nargs="+", metavar="RUN_DIR",
+        help="run folders (e.g. a campaign run restored from the repository) whose listed files you have reviewed",
+    )  # fmt: skip
+
     p_sweep = sub.add_parser(
         "sweep", help="a grid of training runs (config x track x seed) plus final evaluations; resumable"
     )
@@ -236,8 +244,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_sweep.add_argument(
         "--trust-code",
         action="store_true",
-        help="resume and evaluate checkpoints that a run's folder did not write itself (e.g. runs begun before "
-        "written.json existed): they are unpickled, which can run code",
+        help="resume and evaluate checkpoints that this machine did not write itself (e.g. runs begun before "
+        "written.json existed, or restored from another machine): they are unpickled, which can run code",
     )
 
     p_distill = sub.add_parser(

@@ -14,12 +14,14 @@ Usage (``--root`` is the campaign clone; ``--repo`` the main checkout that commi
     python scripts/campaign_state.py save --repo /work/main --root /work/campaign /work/campaign/$RUN
     git -C /work/main commit -m "campaign: run ... stopped at ... steps, resume state in main"
     python scripts/campaign_state.py restore --repo /work/main --root /work/campaign   # on a new machine
+    racebench trust /work/campaign/$RUN   # on the new machine, after reviewing the restored state
     python scripts/campaign_state.py show --repo /work/main
 
 ``save`` stores, per run folder, ``config.yaml``, ``curriculum.json``, ``progress.csv``, ``written.json``,
 ``validation_curve.csv`` (those that exist) and the newest ``checkpoints/<prefix>_<n>_steps.zip`` with its
-``<prefix>_vecnormalize_<n>_steps.pkl``: what ``racebench sweep`` needs to resume the run (``written.json`` keeps the
-checkpoint trusted: its bytes are unchanged). Fly the validation curve first (``racebench.reporting.validation.
+``<prefix>_vecnormalize_<n>_steps.pkl``: what ``racebench sweep`` needs to resume the run (``written.json`` lists the
+checkpoint; on a new machine ``racebench trust RUN_DIR`` adopts that list after review, as a folder's own list
+vouches only for files the machine wrote). Fly the validation curve first (``racebench.reporting.validation.
 validation_curve``): only the newest checkpoint travels. ``restore`` copies the committed state into the clone at the
 same paths and refuses to overwrite a file whose content differs.
 """

@@ -2,10 +2,19 @@
 
 from __future__ import annotations
 
+import atexit
 import logging
+import os
+import shutil
+import tempfile
 from collections.abc import Iterator
 
 import pytest
+
+# The machine-local trust store (racebench.agents.trust.trust_store) of a throwaway folder: the tests never read or
+# write the user's own, and what they record is gone with the session (subprocesses and Ray workers inherit it).
+os.environ["RACEBENCH_STATE_DIR"] = tempfile.mkdtemp(prefix="racebench-test-state-")
+atexit.register(shutil.rmtree, os.environ["RACEBENCH_STATE_DIR"], True)
 
 
 def _pristine_racebench_logger() -> None:

@@ -15,6 +15,7 @@ from leaderboard_fixtures import GC_AGENT, SALT, add, evaluate, make_key, make_r
 
 from racebench import cli
 from racebench.evaluation.statistics import wilson_interval
+from racebench.leaderboard import ranking
 from racebench.leaderboard.entries import MAIN_IDS
 
 ROOT = Path(__file__).parents[1]
@@ -73,6 +74,18 @@ def parse(path: Path) -> Page:
     page = Page()
     page.feed(path.read_text())
     return page
+
+
+#: The protocol's ranked count of the committed leaderboard (the fixtures below rank their 10-episode cells).
+RANKED_EPISODES = ranking.RANKED_EPISODES
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _ten_ranked_episodes():
+    """The fixture entries write 10 episodes per cell (fast): ranked on the first 10 seeds in these tests."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(ranking, "RANKED_EPISODES", 10)
+        yield
 
 
 @pytest.fixture(scope="module")
@@ -333,6 +346,7 @@ def test_the_site_loads_in_headless_chromium_without_console_messages(site: Path
 
 def test_the_committed_site_is_current(tmp_path: Path) -> None:
     """``results/leaderboard/site`` is what ``racebench leaderboard build`` makes of the committed entries."""
+    ranking.RANKED_EPISODES = RANKED_EPISODES  # the package's own count (restored by the module's fixture)
     committed = ROOT / "results" / "leaderboard" / "site"
     assert (committed / "index.html").is_file() and (ROOT / "results" / "leaderboard" / "site.png").is_file()
     from racebench.leaderboard.site import build_site

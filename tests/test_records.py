@@ -253,7 +253,7 @@ def test_corrupt_and_forged_records_are_named_set_aside_and_rerun(
         assert f"{out / RECORDS_FILE}:{line}: " in named
     assert f"{out / RECORDS_FILE}:4: success with 0 of 4 gates" in named
     assert "records-1-feedbeef.jsonl:1: torn last line" in named
-    with pytest.raises(ValueError, match="no valid evaluation records"):
+    with pytest.raises(ValueError, match=r"invalid record .*records\.jsonl:1: "):  # a table never drops one
         read_summaries([out])
 
     caplog.clear()

@@ -49,6 +49,9 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "WRITTEN_FILE",
         "record_written",
         "written_sha256",
+        "trust_folder",
+        "trust_store",
+        "state_dir",
         "require_trusted",
     ),
     "loading": (

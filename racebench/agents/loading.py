@@ -339,7 +339,8 @@ class OnnxAgent:
         options.intra_op_num_threads = 1
         options.inter_op_num_threads = 1
         try:
-            self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+            # The link's target: its external data are read beside it, as onnx_policy_sha256 hashes them.
+            self.session = ort.InferenceSession(str(path.resolve()), options, providers=["CPUExecutionProvider"])
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own exception types
             raise AgentLoadError(f"ONNX file {str(path)!r} could not be loaded: {exc}") from exc
         self.inputs = {i.name: i for i in self.session.get_inputs()}

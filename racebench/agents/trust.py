@@ -8,9 +8,8 @@ from __future__ import annotations
 import ast
 import functools
 import hashlib
-import importlib
-import importlib.util
 import json
+import os
 import re
 import site
 import sys
@@ -98,10 +97,11 @@ def _python_source(spec: str) -> Path:
     if target.endswith(".py"):
         path = Path(target)
     else:
-        try:
-            found = importlib.util.find_spec(target)
-        except (ImportError, ValueError) as exc:
-            raise AgentLoadError(f"agent spec {spec!r}: cannot find module {target!r}: {exc}") from exc
+        # Found as import would find it, but without importing anything: importlib.util.find_spec imports a dotted
+        # name's parent packages (running their __init__.py) before the trust check could refuse them.
+        if not re.fullmatch(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*", target):
+            raise AgentLoadError(f"agent spec {spec!r}: {target!r} is not a module name")
+        found = _find_module(target, {})
         if found is None or not found.origin or not Path(found.origin).is_file():
             raise AgentLoadError(f"agent spec {spec!r}: cannot find module {target!r}")
         path = Path(found.origin)
@@ -473,19 +473,52 @@ def _refuse_untrusted(spec: str, why: str, what: str = "agent", onnx_hint: bool 
 
 #: In a run folder: ``{path: sha256}`` of every checkpoint and statistics file the run wrote itself (paths relative
 #: to the folder), so that resuming the run trusts its own pickles without ``--trust-code`` (:func:`record_written`).
+#: The folder's list alone vouches for nothing (whoever can write the folder can write the list): a file is trusted
+#: through it only if this machine's own store (:func:`trust_store`, outside any repository) also records its sha256.
 WRITTEN_FILE = "written.json"
+
+#: Environment variable naming the machine-local state folder (default ``$XDG_STATE_HOME/racebench`` or
+#: ``~/.local/state/racebench``).
+STATE_DIR_ENV = "RACEBENCH_STATE_DIR"
+
+
+def state_dir() -> Path:
+    """racebench's machine-local state folder, outside any repository: ``$RACEBENCH_STATE_DIR``, else
+    ``$XDG_STATE_HOME/racebench``, else ``~/.local/state/racebench``."""
+    if os.environ.get(STATE_DIR_ENV):
+        return Path(os.environ[STATE_DIR_ENV]).expanduser()
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base).expanduser() / "racebench"
+
+
+def trust_store() -> Path:
+    """The folder in which this machine records the sha256 of every pickle racebench wrote itself (one empty file
+    per sha256, created with the folder on first use, private to the user): what a pull request cannot change."""
+    return state_dir() / "written"
+
+
+def _store(*digests: str) -> None:
+    """Record ``digests`` (sha256 hex, as :func:`_read_written` keeps them) in :func:`trust_store` (idempotent)."""
+    trust_store().mkdir(parents=True, exist_ok=True, mode=0o700)
+    for digest in digests:
+        (trust_store() / digest).touch()
 
 
 def record_written(folder: str | Path, *paths: str | Path) -> None:
-    """Add the sha256 of each file in ``paths`` (written by this process) to ``folder``'s :data:`WRITTEN_FILE`.
+    """Add the sha256 of each file in ``paths`` (written by this process) to ``folder``'s :data:`WRITTEN_FILE` and to
+    this machine's :func:`trust_store`.
 
-    The manifest vouches for what the run wrote, not for the folder: a pickle copied in afterwards is not listed.
+    The manifest vouches for what the run wrote, not for the folder: a pickle copied in afterwards is not listed,
+    and a listed one that this machine did not write is not recorded in its store.
     """
     folder = Path(folder)
     written = _read_written(folder)
+    added = []
     for path in map(Path, paths):
         key = str(path.relative_to(folder)) if path.is_relative_to(folder) else str(path.resolve())
         written[key] = _sha256_bytes(path.read_bytes())
+        added.append(written[key])
+    _store(*added)
     atomic_write(folder / WRITTEN_FILE, json.dumps(written, indent=1, sort_keys=True))
 
 
@@ -501,8 +534,27 @@ def _read_written(folder: Path) -> dict[str, str]:
 
 
 def written_sha256(folder: str | Path | None) -> frozenset[str]:
-    """The sha256 of the files the run in ``folder`` wrote itself (:func:`record_written`); none for ``None``."""
-    return frozenset() if folder is None else frozenset(_read_written(Path(folder)).values())
+    """The sha256 of the files the run in ``folder`` wrote itself: listed in its :data:`WRITTEN_FILE` and recorded
+    in this machine's :func:`trust_store` (:func:`record_written`, :func:`trust_folder`); none for ``None``."""
+    listed = set(_read_written(Path(folder)).values()) if folder is not None else set()
+    return frozenset(d for d in listed if (trust_store() / d).is_file())
+
+
+def trust_folder(folder: str | Path) -> list[str]:
+    """Vouch, on this machine, for the files a run folder's :data:`WRITTEN_FILE` lists (``racebench trust``): the
+    maintainer's explicit step to resume a run that another machine wrote (a campaign's committed state).
+
+    Only listed files that exist in the folder with the listed bytes are recorded; returns their paths (relative to
+    the folder). A folder without a readable manifest raises :class:`ValueError`.
+    """
+    folder = Path(folder)
+    listed = _read_written(folder)
+    if not listed:
+        raise ValueError(f"{folder}: no {WRITTEN_FILE} listing files to trust")
+    trusted = [key for key, digest in sorted(listed.items()) if (folder / key).is_file()
+               and not (folder / key).is_symlink() and sha256_file(folder / key) == digest]  # fmt: skip
+    _store(*(listed[key] for key in trusted))
+    return trusted
 
 
 def require_trusted(
@@ -517,7 +569,11 @@ def require_trusted(
     """
     digest = _sha256_bytes(data)
     if not (trust_code or digest in TRUSTED_CHECKPOINTS or digest in written):
-        raise _refuse_untrusted(str(path), why, what, onnx_hint=what == "agent")
+        error = _refuse_untrusted(str(path), why, what, onnx_hint=what == "agent")
+        if what != "agent":  # a run folder's file: its written.json vouches only for what this machine wrote
+            error = UntrustedCodeError(f"{error} (or, for a reviewed run folder from another machine, "
+                                       "racebench trust FOLDER)")  # fmt: skip
+        raise error
 
 
 def own_policy_trust(out: str | Path, checkpoint: str | Path, trust_code: bool = False) -> bool:

@@ -59,7 +59,7 @@ from racebench.evaluation.records import (
     read_folder,
 )
 from racebench.evaluation.results import MixedResultsError, summarize, write_tables
-from racebench.evaluation.seeds import salt_from_env, salt_sha256, seeds_for
+from racebench.evaluation.seeds import check_episodes, salt_from_env, salt_sha256, seeds_for
 from racebench.evaluation.worker import SingleTorchThread, close_pool, fly, torch_threads, worker_init
 from racebench.evaluation.writer import RecordWriter
 
@@ -130,8 +130,7 @@ class Evaluator:
         backend: str = "local",
         ray_options: RayOptions | None = None,
     ) -> None:
-        if episodes < 1:
-            raise ValueError(f"episodes must be >= 1, got {episodes}")
+        check_episodes(episodes)  # 1 to the public set's size: a bound, not a MemoryError
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
         if batch < 1:

@@ -11,6 +11,7 @@ import pandas as pd
 
 from racebench.evaluation.protocol import TRACK_ORDER, split_env_id
 from racebench.evaluation.records import RECORD_FIELDS, RECORDS_FILE, has_records, read_folder
+from racebench.evaluation.seeds import PUBLIC_SEED_BASE, public_seeds
 from racebench.evaluation.statistics import paired_outcomes, wilson_interval
 from racebench.utils.files import atomic_write
 
@@ -24,19 +25,40 @@ class MixedResultsError(ValueError):
 EPISODE_COLUMNS: tuple[str, ...] = RECORD_FIELDS  # episodes.csv: every record field
 
 
-def load_records(out_dir: str | Path) -> pd.DataFrame:
+def load_records(out_dir: str | Path, strict: bool = False) -> pd.DataFrame:
     """Every valid record of ``out_dir`` (``records.jsonl``, shards of a running or killed evaluation, legacy
     ``records/*.json``) as a DataFrame with :data:`EPISODE_COLUMNS`.
 
     An invalid line is named (file, line, reason) in a warning and left out (never counted); :class:`Evaluator`
-    sets such lines aside and re-runs their episodes.
+    sets such lines aside and re-runs their episodes. With ``strict`` (the tables: a result read back) an invalid
+    line, or a public cell missing a seed of its protocol (:func:`check_complete_cells`), is a :class:`ValueError`.
     """
     found = read_folder(out_dir)
     for problem in found.problems:
+        if strict:
+            raise ValueError(f"invalid record (a cell would be counted without it): {problem.error()}")
         logger.warning("racebench: invalid record left out: %s", problem.error())
     rows = found.sorted_records()
     frame = pd.DataFrame(rows, columns=list(EPISODE_COLUMNS))
-    return frame.sort_values(["agent", "env_id", "seed"], kind="stable").reset_index(drop=True)
+    frame = frame.sort_values(["agent", "env_id", "seed"], kind="stable").reset_index(drop=True)
+    if strict:
+        check_complete_cells(frame, out_dir)
+    return frame
+
+
+def check_complete_cells(episodes: pd.DataFrame, where: str | Path) -> None:
+    """Each public cell (label, policy, env id) must hold every seed of the protocol up to its last one: a gap is an
+    episode left out (e.g. a failure's line deleted), which would count the cell's rate without it."""
+    public = episodes[episodes["seed_set"] == "public"]
+    for (agent, _, env_id), group in public.groupby(["agent", public["policy_sha256"].astype(str), "env_id"]):
+        seeds = {int(s) for s in group["seed"]}
+        expected = set(public_seeds(max(seeds) - PUBLIC_SEED_BASE + 1)) if min(seeds) >= PUBLIC_SEED_BASE else set()
+        missing = sorted(expected - seeds)
+        if missing or not expected:
+            shown = ", ".join(map(str, missing[:5])) + (", ..." if len(missing) > 5 else "")
+            raise ValueError(f"{where}: {agent} on {env_id}: {len(missing)} public seeds of the protocol are missing "
+                             f"({shown or 'seeds outside the public set'}): a cell with dropped episodes is "
+                             "refused; evaluate into the folder again (it flies the missing ones)")  # fmt: skip
 
 
 def summarize(episodes: pd.DataFrame) -> pd.DataFrame:
@@ -98,15 +120,16 @@ def _tracks_overlap(track_sets: list[set[str]]) -> bool:
     return False
 
 
-def load_result_dir(path: str | Path) -> tuple[Path, pd.DataFrame]:
+def load_result_dir(path: str | Path, strict: bool = True) -> tuple[Path, pd.DataFrame]:
     """A result directory (or the ``summary.csv`` / ``episodes.csv`` in it) and its valid records' episodes; a path
-    without records, or with no valid one, is an error naming it."""
+    without records, or with no valid one, is an error naming it. ``strict`` (tables): an invalid record or a cell
+    missing a seed is an error too (:func:`load_records`); a paired comparison pairs only the valid episodes."""
     path = Path(path)
     if path.is_file() and path.name in ("summary.csv", "episodes.csv"):
         path = path.parent
     if not has_records(path):
         raise FileNotFoundError(f"no evaluation records at {str(path)!r} (expected {str(path / RECORDS_FILE)!r})")
-    episodes = load_records(path)
+    episodes = load_records(path, strict=strict)
     if episodes.empty:
         raise ValueError(f"no valid evaluation records in {str(path)!r}")
     return path, episodes
@@ -199,7 +222,7 @@ def paired_comparison(a_dir: str | Path, b_dir: str | Path) -> tuple[pd.DataFram
     env id, then ``all`` of them pooled, the pairs, each side's successes, ``only_a``, ``only_b`` and ``p``.
     """
     episodes, sides = [], []
-    for path, frame in (load_result_dir(a_dir), load_result_dir(b_dir)):
+    for path, frame in (load_result_dir(a_dir, strict=False), load_result_dir(b_dir, strict=False)):
         policies = sorted(frame["policy_sha256"].astype(str).unique())
         if len(policies) > 1:
             labels = ", ".join(sorted(set(frame["agent"].astype(str))))

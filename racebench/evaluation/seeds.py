@@ -54,8 +54,17 @@ def salt_sha256(salt: str) -> str:
     return hashlib.sha256(b"racebench-private-salt\0" + salt.encode()).hexdigest()
 
 
+def check_episodes(episodes: int) -> None:
+    """Episodes per env id are 1 to :data:`MAX_PUBLIC_EPISODES` (the public seed set's size, which bounds the plan's
+    memory too); anything else is a one-line :class:`ValueError`."""
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or not 1 <= episodes <= MAX_PUBLIC_EPISODES:
+        raise ValueError(f"episodes per env id must be an integer from 1 to {MAX_PUBLIC_EPISODES:,} (the public seed "
+                         f"set's size), got {episodes!r}")  # fmt: skip
+
+
 def private_seeds(salt: str, episodes: int, protocol: int = 1) -> list[int]:
     """The first ``episodes`` private seeds of ``salt`` under seed protocol ``protocol`` (distinct, in order)."""
+    check_episodes(episodes)
     check_salt(salt)
     seeds: list[int] = []
     seen: set[int] = set()
@@ -72,6 +81,7 @@ def private_seeds(salt: str, episodes: int, protocol: int = 1) -> list[int]:
 
 def public_seeds(episodes: int) -> list[int]:
     """The public evaluation seeds: ``PUBLIC_SEED_BASE + i``."""
+    check_episodes(episodes)
     return [PUBLIC_SEED_BASE + i for i in range(episodes)]
 
 

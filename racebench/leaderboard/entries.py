@@ -321,6 +321,8 @@ def validate_meta(meta: Any, root: Path, where: str) -> dict[str, Any]:
         if not isinstance(line, dict):
             raise EntryError(f"{at}: expected a mapping {{policy: ..., records: [...]}}, got {type(line).__name__}")
         _check_fields(line, POLICY_FIELDS, at)
+        if not line["policy"].startswith("builtin:"):
+            _check_policy_form(line["policy"], at)
         if not line["records"] or not all(isinstance(r, str) for r in line["records"]):
             raise EntryError(f"{at}: records must list at least one result folder (paths relative to the root)")
         if "onnx" in line and not line["onnx"].endswith(".onnx"):
@@ -417,6 +419,17 @@ def load_records(name: str, policy: Policy, root: Path) -> list[dict[str, Any]]:
     return records
 
 
+def _check_policy_form(policy: str, name: str) -> None:
+    """A leaderboard policy is a file of the repository: ``.zip``, ``.onnx`` or ``file.py:Class``. A dotted
+    ``module:Class`` is refused: finding a module by name can reach code outside the entry's files."""
+    file_part, colon, cls_name = policy.partition(":")
+    if colon and not (file_part.endswith(".py") and cls_name.isidentifier()):
+        raise EntryError(f"{name}: policy {policy!r}: a Python policy in an entry must be file.py:Class (a file of "
+                         "the repository), not a dotted module:Class")  # fmt: skip
+    if not colon and not policy.endswith((".zip", ".onnx")):
+        raise EntryError(f"{name}: policy {policy!r} must be a .zip, .onnx or file.py:Class file of the repository")
+
+
 def policy_sha256(policy: str, root: Path, name: str = "entry") -> str:
     """The sha256 the records of ``policy`` carry: of the file's bytes, or of a built-in's name and version."""
     if policy.startswith("builtin:"):
@@ -424,6 +437,7 @@ def policy_sha256(policy: str, root: Path, name: str = "entry") -> str:
         if builtin not in BUILTIN_AGENTS:
             raise EntryError(f"{name}: unknown built-in {builtin!r} (built-ins: {BUILTIN_AGENTS})")
         return builtin_identity(builtin).sha256
+    _check_policy_form(policy, name)
     file_part = policy.partition(":")[0] if ":" in policy else policy
     path = _inside(Path(file_part), root, "policy", name)
     if not path.is_file():

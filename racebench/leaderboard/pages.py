@@ -47,7 +47,7 @@ def _entry_data(row: Row) -> dict[str, Any]:
             "mean_own_track_sr": row.key()[0],
             "mean_lap_time": None if math.isnan(row.key()[1]) else row.key()[1],
         }
-        if entry.complete
+        if row.ranked
         else None,
         "description": entry.meta["description"],
         "meta": entry.meta,

@@ -15,6 +15,7 @@ import numpy as np
 
 from racebench.envs.registration import DENSITIES, GATE_SHIFTS
 from racebench.evaluation.protocol import TRACK_ORDER
+from racebench.evaluation.seeds import public_seeds
 from racebench.evaluation.statistics import mean_of_means_interval, probability_of_improvement
 from racebench.leaderboard import signing
 from racebench.leaderboard.entries import (
@@ -74,6 +75,12 @@ def aggregate(cells: dict[str, Cell], records: Sequence[dict[str, Any]]) -> dict
     return {"ids": ids, "mean_sr": point, "low": low, "high": high, "episodes": int(sum(len(s) for s in samples))}
 
 
+#: The public episodes per own-track main id a self-reported method is ranked on: the first this many seeds of the
+#: protocol (``leaderboard add``'s default). A constant of the package, reviewed as code, so that no entry chooses
+#: after seeing its results how many of its episodes count: more are shown and never ranked, fewer leave it unranked.
+RANKED_EPISODES = 50
+
+
 @dataclass
 class Row:
     """One entry as the site shows it: its tier and the own-track cells it is ranked on."""
@@ -83,6 +90,12 @@ class Row:
     cells: dict[str, Cell]  # main id -> the own-track cell (signed if verified, else public)
     verified: VerifiedResult | None = None
     refusal: str | None = None  # why its verified.json was refused (None: none, or accepted)
+    short: tuple[str, ...] = ()  # own main ids with fewer public episodes than RANKED_EPISODES (then unranked)
+
+    @property
+    def ranked(self) -> bool:
+        """Whether it is ranked: a policy for each track and, unless verified, the protocol's full count on each."""
+        return self.entry.complete and not self.short
 
     @property
     def name(self) -> str:
@@ -117,7 +130,9 @@ def entry_row(entry: Entry, config: dict[str, Any], pinned_key_sha256: str | Non
         return Row(entry, "reference", _public_main_cells(entry), None, refusal)
     if verified is not None:
         return Row(entry, "verified", dict(verified.cells), verified)
-    return Row(entry, "self-reported", _public_main_cells(entry), None, refusal)
+    cells = _public_main_cells(entry, RANKED_EPISODES)
+    short = tuple(i for i, cell in cells.items() if cell.n < RANKED_EPISODES)
+    return Row(entry, "self-reported", cells, None, refusal, short)
 
 
 def check_verified(entry: Entry, config: dict[str, Any], pinned_key_sha256: str | None) -> VerifiedResult:
@@ -125,8 +140,13 @@ def check_verified(entry: Entry, config: dict[str, Any], pinned_key_sha256: str 
     return signing.check_verified(entry, config, pinned_key_sha256 or signing.MAINTAINERS_KEY_SHA256)
 
 
-def _public_main_cells(entry: Entry) -> dict[str, Cell]:
+def _public_main_cells(entry: Entry, episodes: int | None = None) -> dict[str, Cell]:
+    """Its own-track public cells on the main ids; with ``episodes``, of the protocol's first that many seeds only."""
     own = entry.own_cells()
+    if episodes is not None:
+        first = set(public_seeds(episodes))
+        records = [r for t in entry.tracks for r in entry.public_records(t) if r["seed"] in first]
+        own = summarize_cells([r for r in records if r["env_id"] in MAIN_IDS])
     return {i: own[i] for i in MAIN_IDS if i in own}
 
 
@@ -135,7 +155,7 @@ def rank(rows: Sequence[Row]) -> list[Row]:
 
     def key(row: Row) -> tuple[int, float, float, str]:
         sr, lap = row.key()
-        return (0 if row.entry.complete else 1, -sr, lap if not math.isnan(lap) else math.inf, row.name)
+        return (0 if row.ranked else 1, -sr, lap if not math.isnan(lap) else math.inf, row.name)
 
     return sorted(rows, key=key)
 
@@ -143,6 +163,8 @@ def rank(rows: Sequence[Row]) -> list[Row]:
 def _key_html(row: Row) -> str:
     if not row.entry.complete:
         return f"– <small>({len(row.entry.tracks)}/3 tracks)</small>"
+    if row.short:
+        return f"– <small>(under {RANKED_EPISODES} episodes)</small>"
     sr, lap = row.key()
     lap_text = "–" if math.isnan(lap) else f"{lap:.2f} s"
     return f"{100 * sr:.1f} %<br><small>lap {lap_text}</small>"
@@ -210,8 +232,8 @@ def tier_tables(tier: str, members: list[Row]) -> str:
     """The HTML of one tier: ranked methods (all three tracks), then the unranked ones, bold where separated."""
     if tier == "reference":
         return _ranking_table("table-reference", rank(members), ranked=False, bold={})
-    full = rank([r for r in members if r.entry.complete])
-    partial = rank([r for r in members if not r.entry.complete])
+    full = rank([r for r in members if r.ranked])
+    partial = rank([r for r in members if not r.ranked])
     # Per-track columns compare every entry of the tier flown on that track.
     bold = {i: separated_best({r.name: r.cells.get(i) for r in members}) for i in MAIN_IDS}
     parts = []
@@ -220,8 +242,11 @@ def tier_tables(tier: str, members: list[Row]) -> str:
     else:
         parts.append('<p class="muted">No method of this tier has a policy for all three tracks: none ranked.</p>')
     if partial:
+        short = "" if not any(r.short for r in partial) else (
+            f", or with fewer than the protocol's {RANKED_EPISODES} public episodes on an own-track main id"
+        )
         parts.append(
-            "<p><b>Not ranked</b>: methods without a policy for all three tracks (yet), so their rank key is"
+            f"<p><b>Not ranked</b>: methods without a policy for all three tracks (yet){short}, so their rank key is"
             " unknown, not zero. Listed by success on the tracks they have.</p>"
         )
         parts.append(_ranking_table(f"unranked-{tier}", partial, ranked=False, bold=bold))
@@ -254,7 +279,7 @@ def _improvement_table(rows: list[Row]) -> str:
     """Probability of improvement of each ranked non-reference method over the next one of its tier."""
     pairs = []
     for tier in (t for t in TIERS if t != "reference"):
-        pairs += list(pairwise(r for r in rows if r.tier == tier and r.entry.complete))
+        pairs += list(pairwise(r for r in rows if r.tier == tier and r.ranked))
     body = []
     for better, worse in pairs:
         result = probability_of_improvement(better.outcomes(), worse.outcomes(), MAIN_IDS)

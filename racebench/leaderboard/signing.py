@@ -34,7 +34,8 @@ from racebench.leaderboard.entries import Cell, Entry, check_seed_prefixes
 from racebench.utils.files import sha256_file
 
 VERIFIED_FILE = "verified.json"
-SIGNED_FORMAT = 1
+#: 2: the payload also signs what the entry's page shows beside the badge (:func:`entry_view_sha256`).
+SIGNED_FORMAT = 2
 #: sha256 of the raw 32-byte Ed25519 public key of the racebench maintainers (its PEM is in leaderboard.yaml).
 #: Pinned in the package so that a pull request which swaps the key in the YAML cannot also swap what it is
 #: checked against; rotating the key is a change to this line, reviewed as code.
@@ -174,7 +175,41 @@ def build_payload(entry: Entry, private_records: Mapping[str, Sequence[dict[str,
         "seed_protocol": protocols.pop(),
         "seed_salt_sha256": fingerprint,
         "policies": policies,
+        "entry_sha256": entry_view_sha256(entry),
     }
+
+
+def entry_view(entry: Entry) -> dict[str, Any]:
+    """What an entry's page shows beside the verified badge, besides the signed private cells: its metadata
+    (description, authors, teacher, what it sees, ...) and each policy line (the public-records policy and its
+    sha256, the ONNX export, the record folders and their records' digests, the training budget)."""
+    policies = {}
+    for track, policy in sorted(entry.policies.items()):
+        digests = "\n".join(sorted(r["digest"] for r in policy.records))
+        policies[track] = {
+            "policy": policy.policy, "policy_sha256": policy.sha256, "onnx": policy.onnx,
+            "onnx_sha256": policy.onnx_sha256, "records": list(policy.records_dirs),
+            "records_sha256": hashlib.sha256(digests.encode()).hexdigest(),
+            "steps": policy.steps, "wall_clock_s": policy.wall_clock_s, "budget_source": policy.budget_source,
+        }  # fmt: skip
+    return {"meta": {k: v for k, v in entry.meta.items() if k != "policies"}, "policies": policies}
+
+
+def entry_view_sha256(entry: Entry) -> str:
+    """sha256 of the canonical JSON of :func:`entry_view`: signed with the private cells (format 2)."""
+    return hashlib.sha256(canonical(entry_view(entry))).hexdigest()
+
+
+#: The entries signed in format 1 (whose payload did not cover :func:`entry_view`), with the sha256 of their view
+#: when they were signed: such a signature stands only while the entry's page shows exactly that. Pinned here, as
+#: the key is, so that a pull request cannot change both; a new signature (format 2) needs no line here.
+FORMAT1_VIEWS: dict[str, str] = {
+    "state-ppo": "1311bc4d3bf966c5b4a6108f86c038cecd584a0c7de5f94b0589e8ff571ac9ee",
+    "vision-com": "65ac1818c05af213eaa00299c5337bd657107bb2a5ca4a40701f4780c1587119",
+    "vision-distill": "23d32ce1903acbaefd3671c4ba243cf80e7f0f3f7226498a6b8b7d66956d4602",
+    "vision-distill-ppo": "27a6568d168ac7bfe5d728826ed96d43e1f5ed129c259e4738276f0fdce49801",
+    "vision-ppo": "22380e793dee78fd09f3bbdce84d6f223c0ff66d3232dccdd1279131f9900a44",
+}
 
 
 def sign_payload(payload: Mapping[str, Any], private_key: Any) -> dict[str, Any]:
@@ -255,7 +290,7 @@ def check_verified(entry: Entry, config: Mapping[str, Any], pinned_key_sha256: s
             "(the result was edited after signing, or signed by another key)"
         ) from exc
     # Signed, so the payload is the maintainers' own words: what remains is whether it still describes this entry.
-    if payload.get("format") != SIGNED_FORMAT or payload.get("entry") != entry.name:
+    if payload.get("format") not in (1, SIGNED_FORMAT) or payload.get("entry") != entry.name:
         raise SignatureError(f"{entry.name}: the signed result is of entry {payload.get('entry')!r}")
     if payload.get("env_version") != ENV_VERSION:
         raise SignatureError(
@@ -290,4 +325,11 @@ def check_verified(entry: Entry, config: Mapping[str, Any], pinned_key_sha256: s
             if not (0 <= c["successes"] <= c["n"] and len(laps) == c["successes"] and all(map(math.isfinite, laps))):
                 raise SignatureError(f"{entry.name}: the signed {env_id} cell is inconsistent")
             cells[env_id] = Cell(env_id, "private", c["n"], c["successes"], laps)
+    view = entry_view_sha256(entry)
+    signed_view = payload.get("entry_sha256") if payload["format"] == SIGNED_FORMAT else FORMAT1_VIEWS.get(entry.name)
+    if view != signed_view:
+        raise SignatureError(
+            f"{entry.name}: its metadata or policy lines (what its page shows beside the badge, sha256 {view[:12]}…) "
+            "changed after signing: sign it again"
+        )
     return VerifiedResult(entry.name, cells, payload)

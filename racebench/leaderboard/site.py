@@ -23,7 +23,9 @@ Every policy is one training run: the intervals cover evaluation episodes only, 
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import stat
 from pathlib import Path
 
 import racebench
@@ -34,6 +36,7 @@ from racebench.leaderboard.entries import (
     TIERS,
     load_config,
     load_entries,
+    repo_root,
 )
 from racebench.leaderboard.pages import _entry_data, _entry_page, _page, entry_media
 from racebench.leaderboard.ranking import (
@@ -48,6 +51,7 @@ from racebench.leaderboard.ranking import (
     rank,
     tier_tables,
 )
+from racebench.utils.files import atomic_write
 
 CSS = """
 body { font-family: system-ui, -apple-system, "Segoe UI", sans-serif; margin: 2rem auto; max-width: 75rem;
@@ -73,6 +77,35 @@ img, video { max-width: 100%; height: auto; border: 1px solid #d0d7de; }
 """
 
 
+def script_json(text: str) -> str:
+    """JSON made safe to embed in a ``<script>`` element: ``<``, ``>`` and ``&`` as JSON escapes (the same data), so
+    no text in it (``</script>``, ``<!--``) can end the element or change how the HTML parser reads it."""
+    return text.replace("&", "\\u0026").replace("<", "\\u003c").replace(">", "\\u003e")
+
+
+def check_output_folder(out: Path, root: Path) -> None:
+    """Refuse to build into ``out`` if the build could write or delete through a symbolic link: ``out`` or a parent
+    of it inside the repository ``root`` is a link, or ``out`` holds a link or anything but folders and regular files
+    (a pull request can commit links; the site is written only as regular files inside ``out``)."""
+    why = "the site is written only as regular files inside --out; remove it or choose another --out"
+    anchors = (Path.cwd(), root.resolve())  # the folders the user chose to work in: trusted, as their parents
+    path = Path(os.path.abspath(out))
+    inside = [p for p in path.parents if any(p.is_relative_to(a) and p != a for a in anchors)]
+    for link in (path, *inside):
+        if link.is_symlink():
+            raise ValueError(f"{link} is a symbolic link: {why}")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {str(out)!r} is not a folder")
+    for folder, dirs, files in os.walk(out):  # never follows links
+        for name in dirs + files:
+            path = Path(folder) / name
+            mode = path.lstat().st_mode
+            if stat.S_ISLNK(mode):
+                raise ValueError(f"{path} is a symbolic link: {why}")
+            if not (stat.S_ISDIR(mode) or stat.S_ISREG(mode)):
+                raise ValueError(f"{path} is not a regular file: {why}")
+
+
 def build_site(
     leaderboard: str | Path,
     out: str | Path,
@@ -88,10 +121,11 @@ def build_site(
     config = load_config(leaderboard)
     entries = load_entries(leaderboard)
     out = Path(out)
+    check_output_folder(out, repo_root(leaderboard))
     if (out / "entries").is_dir():
-        shutil.rmtree(out / "entries")  # a removed entry must not keep its page
+        shutil.rmtree(out / "entries")  # a removed entry must not keep its page (no link inside: checked above)
     (out / "entries").mkdir(parents=True, exist_ok=True)
-    (out / "style.css").write_text(CSS.lstrip())
+    atomic_write(out / "style.css", CSS.lstrip())  # a rename: replaces the file, never writes through a link
     rows = {e.name: entry_row(e, config, pinned_key_sha256) for e in entries}
     sections = []
     ordered: list[Row] = []
@@ -109,12 +143,13 @@ def build_site(
             sections.append('<p class="muted">No entries.</p>')
         for row in members:
             media = entry_media(row.entry, out / "entries" / row.name, videos=videos, trust_code=trust_code)
-            (out / "entries" / f"{row.name}.html").write_text(_entry_page(row, media))
+            atomic_write(out / "entries" / f"{row.name}.html", _entry_page(row, media))
     data = {r.name: _entry_data(r) for r in ordered}
     blob = json.dumps(
         {"racebench_version": racebench.__version__, "env_version": ENV_VERSION, "entries": data},
         sort_keys=True, allow_nan=False,
-    ).replace("</", "<\\/")  # fmt: skip
+    )
+    blob = script_json(blob)
     body = (
         "<h1>racebench leaderboard</h1>\n"
         f'<p class="lead">{len(entries)} methods · env version {ENV_VERSION} · racebench '
@@ -143,5 +178,5 @@ def build_site(
         + f'\n<script type="application/json" id="leaderboard-data">{blob}</script>'
     )
     index = out / "index.html"
-    index.write_text(_page("racebench leaderboard", body, "style.css"))
+    atomic_write(index, _page("racebench leaderboard", body, "style.css"))
     return index

@@ -129,7 +129,7 @@ def load_episodes(sources: list[Source]) -> pd.DataFrame:
     """The validated episodes of ``sources``: method, training_seed, env_id, track, variant, seed, success, lap_time
     (a per-track policy's episodes on other tracks left out: the paper flies each policy on its own track)."""
     frames = []
-    loaded = [(source, load_records(source.folder)) for source in sources]
+    loaded = [(source, load_records(source.folder, strict=True)) for source in sources]  # a dropped record: error
     check_one_env_version({str(source.folder): records["env_version"] for source, records in loaded})
     for source, records in loaded:
         if records.empty:

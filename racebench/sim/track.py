@@ -14,13 +14,13 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
 
+from racebench.utils.data import data_file
 from racebench.utils.yamlfile import yaml_problem
 
 BUILTIN_TRACKS: tuple[str, ...] = ("S", "J", "Circle")
@@ -163,7 +163,7 @@ class Track:
 def track_path(name_or_path: str | Path) -> Path:
     """Resolve a built-in track name (``"S"``, ``"J"``, ``"Circle"``) or a file path to a path."""
     if str(name_or_path) in BUILTIN_TRACKS:
-        return Path(str(resources.files("racebench.tracks").joinpath(f"{name_or_path}.yaml")))
+        return data_file("tracks", str(name_or_path))
     path = Path(name_or_path)
     if not path.is_file():
         raise FileNotFoundError(

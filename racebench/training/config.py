@@ -5,7 +5,6 @@ unknown-key check that every training config (PPO and DAgger) shares.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +13,7 @@ from racebench.agents.recurrent import ACTION_OUTPUTS, CNN_KINDS
 from racebench.envs.env import START_MODES
 from racebench.envs.registration import CURRICULUM
 from racebench.sim.obstacles import PLACEMENTS
+from racebench.utils.data import data_file
 from racebench.utils.yamlfile import read_yaml
 
 BASELINES: tuple[str, ...] = (
@@ -35,7 +35,7 @@ BC_TARGETS: tuple[str, ...] = ("init", "teacher")  # TrainConfig.bc_target: the 
 def baseline_path(name_or_path: str | Path) -> Path:
     """Resolve a built-in baseline name (:data:`BASELINES`) or a YAML file path to a path."""
     if str(name_or_path) in BASELINES:
-        return Path(str(resources.files("racebench.configs").joinpath(f"{name_or_path}.yaml")))
+        return data_file("baselines", str(name_or_path))
     path = Path(name_or_path)
     if not path.is_file():
         raise ValueError(
