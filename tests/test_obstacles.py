@@ -184,11 +184,23 @@ def _check_clearances(gen: ObstacleGenerator, scene: Scene, label: str) -> None:
     radius = np.array([o.size[0] for o in obstacles])
     assert set(radius.tolist()) <= set(gen.radius_choices), label
     assert all(o.size[1] == gen.pole_height and o.position[2] == gen.pole_height / 2.0 for o in obstacles), label
+    band = track.obstacle_band
     for r, region in enumerate(track.obstacle_regions):
         a, b = scene.gates[region.between[0]].center[:2], scene.gates[region.between[1]].center[:2]
-        lo, hi = np.minimum(a, b) - region.half_width, np.maximum(a, b) + region.half_width
         own = centre[r * gen.density : (r + 1) * gen.density]
-        assert np.all((own >= lo - TOL) & (own <= hi + TOL)), f"{label}: obstacle outside region {r}"
+        if gen.placement == "box":
+            lo, hi = np.minimum(a, b) - region.half_width, np.maximum(a, b) + region.half_width
+            assert np.all((own >= lo - TOL) & (own <= hi + TOL)), f"{label}: obstacle outside region {r}"
+        else:  # the strip along the leg a -> b, end_margin short of either gate, inside the arena
+            length = float(np.linalg.norm(b - a))
+            along = (b - a) / length
+            t = (own - a) @ along
+            u = (own - a) @ np.array([-along[1], along[0]])
+            margin = min(band.end_margin, length / 2.0)
+            assert np.all((t >= margin - TOL) & (t <= length - margin + TOL)), f"{label}: obstacle off leg {r}"
+            assert np.all(np.abs(u) <= band.half_width + TOL), f"{label}: obstacle outside band {r}"
+            low, high = scene.arena_low[:2], scene.arena_high[:2]
+            assert np.all((own - radius[r * gen.density : (r + 1) * gen.density, None] > low) & (own < high)), label
     g_centre = np.array([g.center[:2] for g in scene.gates])
     g_yaw = np.array([g.yaw for g in scene.gates])
     lateral = np.stack([-np.sin(g_yaw), np.cos(g_yaw)], axis=1)
@@ -237,6 +249,21 @@ def test_corridor_check_rejects_blocked_layouts(name: str) -> None:
         path = find_corridor(scene, gen.corridor_radius, ceiling=ceiling)
         _check_corridor(scene, gen.corridor_radius, path, f"{name} fat seed {seed}", ceiling)
     assert gen.rejections["corridor"] > 0
+
+
+@pytest.mark.parametrize("name", ["S", "J", "Circle"])
+def test_env_version_2_box_placement_keeps_clearances_and_a_corridor(name: str) -> None:
+    """placement="box" (env version 2's, kept for campaign 1): the same rules, obstacles in the gate-centre box."""
+    track = _track(name)
+    gens = [ObstacleGenerator(track, density=d, gate_shift=s, placement="box") for d, s in COMBOS]
+    for seed in range(60):
+        gen = gens[seed % len(gens)]
+        scene = gen.sample_scene(np.random.default_rng(seed))
+        label = f"{name} box seed {seed}"
+        _check_clearances(gen, scene, label)
+        ceiling = _ceiling(gen, scene)
+        _check_corridor(scene, gen.corridor_radius, find_corridor(scene, gen.corridor_radius, ceiling=ceiling), label,
+                        ceiling)  # fmt: skip
 
 
 @pytest.mark.parametrize("kind", ["box", "mixed"])

@@ -26,7 +26,14 @@ from racebench.envs.observations import (
     state_space,
 )
 from racebench.envs.reward import REWARD_TERMS, RewardWeights, reward_terms
-from racebench.sim.bullet import display_available, p
+from racebench.envs.starts import (  # noqa: F401  (START_POINT_*: re-exported, racebench.envs.env's names)
+    START_MODES,
+    START_POINT_DISTANCE,
+    START_POINT_TRIES,
+    start_at_a_point,
+    start_before_a_gate,
+)
+from racebench.sim.bullet import display_available
 from racebench.sim.camera import DepthCamera
 from racebench.sim.collision import CollisionChecker
 from racebench.sim.obstacles import (
@@ -45,13 +52,6 @@ from racebench.utils.validation import check_int, check_real, check_triple
 
 OBS_MODES: tuple[str, ...] = ("vision", "state")
 RENDERERS: tuple[str, ...] = ("pybullet", "raycast")
-START_MODES: tuple[str, ...] = ("track", "points", "gates")
-#: ``start_mode="points"``: the starting point before gate k > 0 lies this far before the gate centre, against its
-#: normal. The authors' track starts are 2 m before the first gate (S (1,0,1) → (3,0,1); J and Circle (2,3,1) →
-#: (4,3,1)); from 2 m the whole 1.28 m frame fills at most 78° of the 90° field of view at any ±0.5 m offset.
-START_POINT_DISTANCE = 2.0  # m
-#: ``start_mode="points"``: offsets drawn around a gate's starting point before falling back to the track start.
-START_POINT_TRIES = 8
 # Parameter ranges (the table in RaceEnv's docstring gives the reasons).
 MAX_DESIRED_SPEED = 20.0  # m/s
 MAX_EPISODE_TIME = 600.0  # s
@@ -107,19 +107,11 @@ class RaceEnv(gym.Env):
         renderer: depth renderer, ``"pybullet"`` (``getCameraImage`` with TinyRenderer, the reference) or
             ``"raycast"`` (:class:`~racebench.sim.raycast.BatchDepthRenderer`, the same image within a tested
             tolerance, an order of magnitude faster).
-        start_mode: where episodes start. ``"track"``: always in the track's start region (evaluation).
-            ``"points"`` (training, the paper's "random initialization around each starting point", Sec. III-C.2):
-            at rest, before a gate ``k`` drawn uniformly; ``k = 0`` is the track's start region, and for
-            ``k > 0`` the starting point lies :data:`START_POINT_DISTANCE` m before gate ``k`` against its
-            normal (the next gate fully in the camera's view), offset uniformly by ±``start_spread`` and facing
-            along the normal; an offset closer than the generator's clearance to anything (or below 0.5 m) is
-            redrawn, up to :data:`START_POINT_TRIES` times, else the episode starts at the track start.
-            ``"gates"`` (campaign 1's flying mid-leg start, kept so that its runs reproduce): for ``k > 0`` the
-            drone starts between gates ``k − 1`` and ``k`` (±``start_spread``, clear of obstacles by the
-            generator's clearance, else at the track start), facing along the leg, already flying along it at a
-            speed drawn uniformly up to ``desired_speed``. In both, gate ``k`` is the first to pass and the episode
-            succeeds on passing the remaining gates (``lap_time`` is set; ``info["start_gate"]`` is ``k``, so only
-            ``k = 0`` episodes are laps).
+        start_mode: where episodes start (:mod:`racebench.envs.starts`). ``"track"``: the track's start region
+            (evaluation). ``"points"`` (training, the paper's): at rest, ±``start_spread`` around the track start
+            or a point 2 m before a uniformly drawn gate ``k``, facing it. ``"gates"`` (campaign 1's): mid-leg
+            before gate ``k``, already flying towards it. Gate ``k`` is the first to pass and the episode succeeds
+            on the remaining ones (``info["start_gate"]`` is ``k``, so only ``k = 0`` episodes are laps).
         gate_shift_z: ± half-range of the gates' vertical shift in m (default ``gate_shift``; the paper trains
             with ±1 m on x/y and ±0.3 m on z).
         depth_format: ``"float32"`` (the default and the paper's: ``(1, 64, 64)`` in [0, 1]) or ``"uint8"``
@@ -206,16 +198,13 @@ class RaceEnv(gym.Env):
         obstacle_placement: str = "band",
     ) -> None:
         super().__init__()
-        if obs_mode not in OBS_MODES:
-            raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
-        if start_mode not in START_MODES:
-            raise ValueError(f"start_mode must be one of {START_MODES}, got {start_mode!r}")
-        if depth_format not in DEPTH_FORMATS:
-            raise ValueError(f"depth_format must be one of {DEPTH_FORMATS}, got {depth_format!r}")
-        if obstacle_placement not in PLACEMENTS:
-            raise ValueError(f"obstacle_placement must be one of {PLACEMENTS}, got {obstacle_placement!r}")
-        if renderer not in RENDERERS:
-            raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
+        for name, value, choices in (
+            ("obs_mode", obs_mode, OBS_MODES), ("start_mode", start_mode, START_MODES),
+            ("depth_format", depth_format, DEPTH_FORMATS), ("obstacle_placement", obstacle_placement, PLACEMENTS),
+            ("renderer", renderer, RENDERERS),
+        ):  # fmt: skip
+            if value not in choices:
+                raise ValueError(f"{name} must be one of {choices}, got {value!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         for name, value in (("control_freq", control_freq), ("physics_freq", physics_freq)):
@@ -235,16 +224,7 @@ class RaceEnv(gym.Env):
             raise ValueError(f"track must be a built-in track name or a track file path, got {track!r}")
 
         self.track: Track = load_track(track)
-        if isinstance(quadrotor, QuadrotorParams):
-            self.params = quadrotor
-        elif quadrotor is None or isinstance(quadrotor, dict):
-            known = {f.name for f in dataclasses.fields(QuadrotorParams)}
-            unknown = sorted(set(quadrotor or {}) - known)
-            if unknown:
-                raise ValueError(f"quadrotor: unknown parameter {unknown[0]!r} (known: {sorted(known)})")
-            self.params = QuadrotorParams(**(quadrotor or {}))
-        else:
-            raise ValueError(f"quadrotor must be a dict of its fields or a QuadrotorParams, got {quadrotor!r}")
+        self.params = QuadrotorParams.from_overrides(quadrotor)
         if start_spread is not None:
             spread = np.array(check_triple("start_spread", start_spread, 0.0, MAX_START_SPREAD, unit="m"))
             # the whole start box above the ground by the collision radius: a lower start touches the ground
@@ -341,10 +321,13 @@ class RaceEnv(gym.Env):
         elif not isinstance(scene, Scene):
             raise ValueError(f"reset: options['scene'] must be a racebench Scene, got {type(scene).__name__}")
         self.start_gate, velocity = 0, None
+        spread, clearance = self.track.start.spread, self.generator.clearance
         if self.start_mode == "points" and "scene" not in options:
-            scene, self.start_gate = self._start_at_a_point(scene)
+            scene, self.start_gate = start_at_a_point(scene, self.np_random, spread, clearance)
         elif self.start_mode == "gates" and "scene" not in options:
-            scene, self.start_gate, velocity = self._start_before_a_gate(scene)
+            scene, self.start_gate, velocity = start_before_a_gate(
+                scene, self.np_random, spread, clearance, self.desired_speed
+            )
         self.scene = scene
         self.collision = CollisionChecker(scene, self.params.collision_radius)
         self.sim.load_scene(scene)
@@ -359,50 +342,6 @@ class RaceEnv(gym.Env):
         self.prev_action = np.array([self.params.hover_action, 0.0, 0.0, 0.0])
         self._arena = (tuple(scene.arena_low.tolist()), tuple(scene.arena_high.tolist()))
         return self._info(dict.fromkeys(REWARD_TERMS, 0.0))
-
-    def _start_at_a_point(self, scene: Scene) -> tuple[Scene, int]:
-        """``start_mode="points"``: move the start of ``scene`` to a uniformly drawn gate's starting point (at rest).
-
-        See the class doc. Returns the scene with its start pose and the first gate to pass.
-        """
-        k = int(self.np_random.integers(len(scene.gates)))
-        if k == 0:
-            return scene, 0
-        gate = scene.gates[k]
-        point = gate.center - START_POINT_DISTANCE * gate.normal
-        spread = self.track.start.spread
-        for _ in range(START_POINT_TRIES):
-            start = point + self.np_random.uniform(-spread, spread)
-            if start[2] >= 0.5 and scene.point_distance(*start.tolist()) >= self.generator.clearance:
-                return dataclasses.replace(scene, start_position=start, start_yaw=float(gate.yaw)), k
-        return scene, 0
-
-    def _start_before_a_gate(self, scene: Scene) -> tuple[Scene, int, np.ndarray | None]:
-        """``start_mode="gates"``: move the start of ``scene`` before a uniformly drawn gate (see the class doc).
-
-        Candidates run from the middle of the leg towards gate ``k − 1`` (their leg point at least 1 m from
-        either gate), each shifted by one random offset within ``start_spread``; the first one at least the
-        generator's clearance from every obstacle and frame (and 0.5 m above the ground) is used, else the track
-        start. A mid-track start already flies along the leg (gate ``k − 1`` → ``k``) at a speed drawn
-        uniformly in ``[0, desired_speed]``.
-        """
-        k = int(self.np_random.integers(len(scene.gates)))
-        if k == 0:
-            return scene, 0, None
-        before, gate = scene.gates[k - 1].center, scene.gates[k].center
-        leg = gate - before
-        length = float(np.linalg.norm(leg))
-        spread = self.track.start.spread
-        jitter = self.np_random.uniform(-spread, spread)
-        velocity = leg / length * self.np_random.uniform(0.0, self.desired_speed)
-        for fraction in (0.5, 0.4, 0.3, 0.2):
-            if min(fraction, 1.0 - fraction) * length < 1.0:
-                continue
-            start = before + fraction * leg + jitter
-            if start[2] < 0.5 or scene.point_distance(*start.tolist()) < self.generator.clearance:
-                continue
-            return dataclasses.replace(scene, start_position=start, start_yaw=math.atan2(leg[1], leg[0])), k, velocity
-        return scene, 0, None
 
     def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict]:
         """Apply one CTBR action for ``physics_freq / control_freq`` physics steps."""
@@ -616,25 +555,7 @@ class RaceEnv(gym.Env):
             return None
         if self.render_mode != "rgb_array" or self.scene is None:
             return None
-        pos, _, rot, _, _ = self.drone
-        heading = rot[:, 0].copy()
-        heading[2] = 0.0
-        norm = np.linalg.norm(heading)
-        heading = heading / norm if norm > 1e-6 else np.array([1.0, 0.0, 0.0])
-        eye = pos - 2.5 * heading + np.array([0.0, 0.0, 1.2])
-        c = self.sim.client
-        view = c.computeViewMatrix(eye.tolist(), pos.tolist(), [0.0, 0.0, 1.0])
-        proj = c.computeProjectionMatrixFOV(70.0, 320 / 240, 0.05, 60.0)
-        _, _, rgba, _, _ = c.getCameraImage(
-            320,
-            240,
-            viewMatrix=view,
-            projectionMatrix=proj,
-            renderer=p.ER_TINY_RENDERER,
-            flags=p.ER_NO_SEGMENTATION_MASK,
-            shadow=0,
-        )
-        return np.asarray(rgba, dtype=np.uint8).reshape(240, 320, 4)[:, :, :3].copy()
+        return self.sim.chase_image(self.drone.position, self.drone.rotation)
 
     def _render_human(self) -> None:
         """Point the GUI's camera at the drone from behind, then wait until this frame is due at real time."""

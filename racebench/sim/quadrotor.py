@@ -13,8 +13,10 @@ Action (CTBR) in ``[-1, 1]^4``:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -94,6 +96,19 @@ class QuadrotorParams:
                 f"QuadrotorParams.max_thrust must be in {interval(lo, hi, low_open=True, unit='N')} (thrust-to-weight "
                 f"in {interval(MIN_THRUST_TO_WEIGHT, MAX_THRUST_TO_WEIGHT, low_open=True)}), got {self.max_thrust!r}"
             )
+
+    @classmethod
+    def from_overrides(cls, overrides: dict[str, Any] | QuadrotorParams | None) -> QuadrotorParams:
+        """The defaults with ``overrides`` (a dict of fields) on top, or ``overrides`` itself; a one-line error else."""
+        if isinstance(overrides, QuadrotorParams):
+            return overrides
+        if overrides is not None and not isinstance(overrides, dict):
+            raise ValueError(f"quadrotor must be a dict of its fields or a QuadrotorParams, got {overrides!r}")
+        unknown = sorted(set(overrides or {}) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            known = sorted(f.name for f in dataclasses.fields(cls))
+            raise ValueError(f"quadrotor: unknown parameter {unknown[0]!r} (known: {known})")
+        return cls(**(overrides or {}))
 
     @property
     def hover_action(self) -> float:

@@ -268,6 +268,28 @@ class Simulation(_Uncopyable):
         """Apply a world-frame force at the centre of mass and a world-frame torque, then step once."""
         self.step_raw(tuple(force_world.tolist()), tuple(torque_world.tolist()), tuple(position.tolist()))
 
+    def chase_image(self, position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+        """A 320×240 RGB image from a camera 2.5 m behind and 1.2 m above a drone at ``position``, ``rotation``."""
+        pos, rot = position, rotation
+        heading = rot[:, 0].copy()
+        heading[2] = 0.0
+        norm = np.linalg.norm(heading)
+        heading = heading / norm if norm > 1e-6 else np.array([1.0, 0.0, 0.0])
+        eye = pos - 2.5 * heading + np.array([0.0, 0.0, 1.2])
+        c = self.client
+        view = c.computeViewMatrix(eye.tolist(), pos.tolist(), [0.0, 0.0, 1.0])
+        proj = c.computeProjectionMatrixFOV(70.0, 320 / 240, 0.05, 60.0)
+        _, _, rgba, _, _ = c.getCameraImage(
+            320,
+            240,
+            viewMatrix=view,
+            projectionMatrix=proj,
+            renderer=p.ER_TINY_RENDERER,
+            flags=p.ER_NO_SEGMENTATION_MASK,
+            shadow=0,
+        )
+        return np.asarray(rgba, dtype=np.uint8).reshape(240, 320, 4)[:, :, :3].copy()
+
     def close(self) -> None:
         """Disconnect the PyBullet client."""
         try:

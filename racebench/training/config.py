@@ -10,8 +10,8 @@ from typing import Any
 
 from racebench.agents.planner import FastPlannerAgent
 from racebench.agents.recurrent import ACTION_OUTPUTS, CNN_KINDS
-from racebench.envs.env import START_MODES
 from racebench.envs.registration import CURRICULUM
+from racebench.envs.starts import START_MODES
 from racebench.sim.obstacles import PLACEMENTS
 from racebench.utils.data import data_file
 from racebench.utils.yamlfile import read_yaml
