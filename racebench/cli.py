@@ -485,19 +485,53 @@ def _compare(args: argparse.Namespace) -> int:
         sides, pairs = paired_comparison(args.a, args.b)
     except (OSError, ValueError) as exc:
         raise SystemExit(f"racebench compare: {exc}") from exc
+    paired = int(pairs["pairs"].iloc[-1])
     lines = [
-        f"{key}: {side.evaluation}: {side.agent} (policy {side.policy_sha256}) {side.successes}/{side.n} "
-        f"({100 * side.success_rate:.0f} % [{100 * side.sr_ci_low:.0f}–{100 * side.sr_ci_high:.0f}]), "
-        f"mean lap {side.lap_time_mean:.2f} s; failures {side.failures}"
+        f"{key}: {side.evaluation}: {side.agent} (policy {side.policy_sha256}): {side.n} episodes in the folder, "
+        f"{paired} paired; failures of all {side.n}: {side.failures}"
         for key, side in zip("ab", sides.itertuples(index=False), strict=True)
     ]  # fmt: skip
-    lines.append("laps only a / only b finished of the pairs (same env id and seed); p: McNemar's exact test")
-    lines.append(pairs.to_string(index=False, formatters={"p": "{:.3f}".format}))
+    lines.append(
+        "Per env id, on the paired episodes only (same env id and seed on both sides; a folder's other episodes are "
+        "left out): SR = successes/pairs, success rate in % [its 95 % Wilson interval]; lap = mean lap time of the "
+        "successful laps in seconds ('–': no successful lap)"
+    )
+    lines.append(compare_header(pairs).to_string(index=False))
+    lines.append("laps only a / only b finished of the pairs; p: McNemar's exact test on those discordant pairs")
+    lines.append(pairs[["env_id", "pairs", "only_a", "only_b", "p"]].to_string(index=False,
+                                                                            formatters={"p": "{:.3f}".format}))
     _emit("\n".join(lines))
     if args.out:
         pairs.to_csv(args.out, index=False)
         log.info(f"wrote {args.out}")
     return 0
+
+
+def lap_text(seconds: float) -> str:
+    """A mean lap time as printed: seconds to 0.01 s, or "–" without a successful lap (NaN)."""
+    return "–" if seconds != seconds else f"{seconds:.2f}"  # NaN != NaN
+
+
+def compare_header(pairs: Any) -> Any:
+    """``racebench compare``'s per-env-id table of each side on the paired episodes (see its printed legend)."""
+    import pandas as pd
+
+    table = {"env_id": pairs["env_id"], "pairs": pairs["pairs"]}
+    for side in "ab":
+        table[f"{side} SR [%]"] = [
+            f"{k}/{n} {100 * k / n:.0f} [{100 * low:.0f}–{100 * high:.0f}]" if n else "–"
+            for k, n, low, high in zip(pairs[f"successes_{side}"], pairs["pairs"], pairs[f"sr_ci_low_{side}"],
+                                       pairs[f"sr_ci_high_{side}"], strict=True)  # fmt: skip
+        ]
+        table[f"{side} lap [s]"] = [lap_text(float(v)) for v in pairs[f"lap_time_mean_{side}"]]
+    return pd.DataFrame(table)
+
+
+#: What ``racebench evaluate`` prints above its summary table: what each column is, and its unit.
+SUMMARY_LEGEND = (
+    "n: episodes; success_rate: the share of them that finished the lap; sr_ci_low/sr_ci_high: its 95 % Wilson "
+    "interval; lap_time_mean: mean lap time of the successful episodes in seconds ('–': no successful lap)"
+)
 
 
 def _export_policy(args: argparse.Namespace) -> int:
@@ -574,7 +608,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     columns = ["env_id", "n", "successes", "success_rate", "sr_ci_low", "sr_ci_high", "lap_time_mean"]
     order = {env_id: i for i, env_id in enumerate(evaluator.env_ids)}
     shown = summary.sort_values("env_id", key=lambda ids: ids.map(order))
-    print(shown[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    print(SUMMARY_LEGEND)
+    print(shown[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}", na_rep="–"))
     log.info(f"wrote {evaluator.out_dir / 'episodes.csv'} and {evaluator.out_dir / 'summary.csv'}")
     asked = evaluator.selected  # the asked episodes, as just summarised
     failed = asked["crash_reason"].isin(["agent_error", "env_error"])
