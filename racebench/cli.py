@@ -498,8 +498,9 @@ def _compare(args: argparse.Namespace) -> int:
     )
     lines.append(compare_header(pairs).to_string(index=False))
     lines.append("laps only a / only b finished of the pairs; p: McNemar's exact test on those discordant pairs")
-    lines.append(pairs[["env_id", "pairs", "only_a", "only_b", "p"]].to_string(index=False,
-                                                                            formatters={"p": "{:.3f}".format}))
+    lines.append(
+        pairs[["env_id", "pairs", "only_a", "only_b", "p"]].to_string(index=False, formatters={"p": "{:.3f}".format})
+    )
     _emit("\n".join(lines))
     if args.out:
         pairs.to_csv(args.out, index=False)
@@ -520,8 +521,13 @@ def compare_header(pairs: Any) -> Any:
     for side in "ab":
         table[f"{side} SR [%]"] = [
             f"{k}/{n} {100 * k / n:.0f} [{100 * low:.0f}–{100 * high:.0f}]" if n else "–"
-            for k, n, low, high in zip(pairs[f"successes_{side}"], pairs["pairs"], pairs[f"sr_ci_low_{side}"],
-                                       pairs[f"sr_ci_high_{side}"], strict=True)  # fmt: skip
+            for k, n, low, high in zip(
+                pairs[f"successes_{side}"],
+                pairs["pairs"],
+                pairs[f"sr_ci_low_{side}"],
+                pairs[f"sr_ci_high_{side}"],
+                strict=True,
+            )  # fmt: skip
         ]
         table[f"{side} lap [s]"] = [lap_text(float(v)) for v in pairs[f"lap_time_mean_{side}"]]
     return pd.DataFrame(table)

@@ -154,8 +154,9 @@ def test_a_stock_multiinput_policy_on_float_depth_is_warned_about_once(tmp_path:
     flat = PPO("MultiInputPolicy", gym.make(LEVEL1), n_steps=32, batch_size=32, seed=0, device="cpu")
     assert loading.flattens_depth(flat.policy)
     flat.save(tmp_path / "flat.zip")
-    cnn = PPO("MultiInputPolicy", gym.make(LEVEL1, depth_format="uint8"), n_steps=32, batch_size=32, seed=0,
-              device="cpu")
+    cnn = PPO(
+        "MultiInputPolicy", gym.make(LEVEL1, depth_format="uint8"), n_steps=32, batch_size=32, seed=0, device="cpu"
+    )
     assert not loading.flattens_depth(cnn.policy)
     loading._warned_flat_depth = False
     with caplog.at_level("WARNING", logger="racebench"):
