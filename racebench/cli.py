@@ -470,7 +470,7 @@ def _paper_tables(args: argparse.Namespace) -> int:
             curve = validation_curve(run, trust_code=args.trust_code)
             log.info(f"{run}: validation success {', '.join(f'{r:.2f}' for r in curve['success_rate'])}")
         readme = None if args.no_readme else root / "README.md"
-        written = write_report(root, args.out, readme)
+        written = write_report(root, args.out, readme, args.campaign, args.references)
     except (OSError, ValueError) as exc:
         raise SystemExit(f"racebench paper-tables: {exc}") from exc
     _emit("\n".join(f"wrote {path}" for path in written))

@@ -111,6 +111,15 @@ def build_parser() -> argparse.ArgumentParser:
     p_paper.add_argument("--out", default="results", help="output folder (default: results)")
     p_paper.add_argument("--no-readme", action="store_true", help="leave README.md's results block as it is")
     p_paper.add_argument(
+        "--campaign", default="baselines/experiments/campaign-4m",
+        help="the campaign's run folder under --root (default: campaign 1, baselines/experiments/campaign-4m)",
+    )  # fmt: skip
+    p_paper.add_argument(
+        "--references", default="results/env-v2",
+        help="the reference agents' evaluations on the campaign's env version, under --root (default: results/env-v2, "
+        "campaign 1's)",
+    )  # fmt: skip
+    p_paper.add_argument(
         "--trust-code", action="store_true",
         help="--validation-curve: unpickle checkpoints this machine did not write (older runs, other machines)",
     )  # fmt: skip
