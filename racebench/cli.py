@@ -264,7 +264,23 @@ def _plot(args: argparse.Namespace) -> int:
     if not 20 <= args.dpi <= 2400:
         raise SystemExit(f"racebench plot: --dpi must be in [20, 2400], got {args.dpi}")
     summary = _summaries(args.results, "plot")
-    out, fmt, dpi = Path(args.out), args.format, args.dpi
+    out, formats, dpi = Path(args.out), list(dict.fromkeys(args.format)), args.dpi
+    if args.leaderboard:
+        import pandas as pd
+
+        from racebench.evaluation.results import check_one_env_version, load_result_dir
+
+        try:
+            entries, versions = plots.entry_summary(args.leaderboard)
+            for path in args.results:  # a figure is of one env version: the entries' and the results' alike
+                folder, records = load_result_dir(path, strict=False)
+                versions[str(folder)] = records["env_version"]
+            check_one_env_version(versions)
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"racebench plot: --leaderboard: {exc}") from exc
+        if entries.empty:
+            log.warning(f"no verified learned entry in {args.leaderboard}: the figures show the results only")
+        summary = pd.concat([summary, entries], ignore_index=True)
     written = []
     for name, make in (
         ("success_by_track", lambda p: plots.plot_success_by_track(summary, p, dpi)),
@@ -272,10 +288,12 @@ def _plot(args: argparse.Namespace) -> int:
         ("success_vs_gate_shift", lambda p: plots.plot_success_vs(summary, "gates", p, dpi)),
         ("success_by_level", lambda p: plots.plot_success_vs(summary, "levels", p, dpi)),
     ):
-        try:
-            written.append(make(out / f"{name}.{fmt}"))
-        except ValueError as exc:  # a figure whose results are absent is skipped, with the reason
-            log.warning(f"skipped {name}: {exc}")
+        for fmt in formats:
+            try:
+                written.append(make(out / f"{name}.{fmt}"))
+            except ValueError as exc:  # a figure whose results are absent is skipped, with the reason
+                log.warning(f"skipped {name}: {exc}")
+                break
     if args.track_env:
         folders = [Path(r) if Path(r).is_dir() else Path(r).parent for r in args.results]  # a CSV: its folder
         sources = [folder for folder in folders if has_trajectories(folder)]
@@ -285,7 +303,9 @@ def _plot(args: argparse.Namespace) -> int:
             without = ", ".join(str(folder) for folder in folders if folder not in sources)
             log.warning(f"no saved trajectories in {without}: not in the track figure")
         try:
-            written.append(plots.plot_track_3d(sources, args.track_env, out / f"track_{args.track_env}.{fmt}", dpi=dpi))
+            for fmt in formats:
+                written.append(plots.plot_track_3d(sources, args.track_env, out / f"track_{args.track_env}.{fmt}",
+                                                   dpi=dpi))  # fmt: skip
         except ValueError as exc:
             raise SystemExit(f"racebench plot: {exc}") from exc
     for path in written:
@@ -301,14 +321,19 @@ def _curves(args: argparse.Namespace) -> int:
 
     if args.smooth < 1 or args.window_steps < 1:
         raise SystemExit("racebench curves: --smooth and --window-steps must be >= 1")
+    labels = dict(label.split("=", 1) for label in args.label if "=" in label)
+    if len(labels) < len(args.label):
+        raise SystemExit("racebench curves: --label takes RUN=NAME")
     try:
         if args.success:
-            out = args.out or "runs/figures/success_curves.png"
-            written = plot_success_curves(args.runs, out, args.window_steps, args.dpi)
+            outs = args.out or ["runs/figures/success_curves.png"]
+            plot_success_curves(args.runs, list(outs), args.window_steps, args.dpi, labels)
         else:
-            out = args.out or "runs/figures/training_curves.png"
-            written = plot_training_curves(args.runs, out, args.smooth, args.dpi)
-        log.info(f"wrote {written}")
+            outs = args.out or ["runs/figures/training_curves.png"]
+            for out in outs:
+                plot_training_curves(args.runs, out, args.smooth, args.dpi)
+        for out in outs:
+            log.info(f"wrote {out}")
     except ValueError as exc:
         raise SystemExit(f"racebench curves: {exc}") from exc
     return 0

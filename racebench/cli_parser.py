@@ -159,7 +159,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="also draw the 3D track plot of this env id (Fig. 4): every result directory's saved trajectories",
     )
-    p_plot.add_argument("--format", default="png", choices=("png", "pdf", "svg"), help="file format (default png)")
+    p_plot.add_argument(
+        "--format", default=["png"], nargs="+", choices=("png", "pdf", "svg"),
+        help="file format(s): each figure is written once per format, e.g. --format png pdf (default png)",
+    )  # fmt: skip
+    p_plot.add_argument(
+        "--leaderboard", default=None, metavar="DIR",
+        help="also plot the learned methods of this leaderboard (e.g. results/leaderboard) that are verified: each "
+        "entry's own-track public-seed cells; their records must be of the results' env version",
+    )  # fmt: skip
     p_plot.add_argument("--dpi", type=int, default=300, help="resolution of PNGs in dots per inch (default 300)")
     p_curves = sub.add_parser(
         "curves", help="training curves (the paper's Fig. 5) from `racebench train` run directories"
@@ -168,8 +176,14 @@ def build_parser() -> argparse.ArgumentParser:
     p_curves.add_argument(
         "--out",
         default=None,
-        help="output file, .png, .pdf or .svg (default runs/figures/training_curves.png, or success_curves.png)",
+        nargs="+",
+        help="output file(s), .png, .pdf or .svg, e.g. --out f.png f.pdf (default runs/figures/training_curves.png, "
+        "or success_curves.png)",
     )
+    p_curves.add_argument(
+        "--label", action="append", default=[], metavar="RUN=NAME",
+        help="with --success: name a run (as given) in the legend, e.g. the leaderboard's method name; repeatable",
+    )  # fmt: skip
     p_curves.add_argument("--smooth", type=int, default=20, help="rolling mean over this many updates (default 20)")
     p_curves.add_argument(
         "--success",
