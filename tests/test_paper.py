@@ -145,6 +145,11 @@ def test_the_readme_block_sets_each_trained_row_below_the_papers() -> None:
     ]  # fmt: skip
     assert lines[4].split(" | ")[1:4] == ["30 %, 3.5 s", "20 %, 3.8 s", "30 %, 3.1 s"]  # the paper's Table II
     assert lines[5].split(" | ")[1:4] == ["45 [36–55] %, 4.00 s", "0 [0–4] %, no lap", "39 [30–49] %, 4.00 s"]
+    # Several training seeds: the same "SR [low–high] %" format, the row naming what the brackets are.
+    rows += [episodes_of("vision-ppo", f"RaceObs-{t}-v0", k, seed=1) for t, k in (("S", 90), ("Circle", 50), ("J", 60))]
+    lines = at_a_glance(pd.concat(rows, ignore_index=True)).splitlines()
+    assert lines[3].startswith("| `vision-ppo`: the paper's method, trained here (mean [range] of 2 training seeds) |")
+    assert lines[3].split(" | ")[1:4] == ["80 [70–90] %, 4.00 s", "60 [50–70] %, 4.00 s", "65 [60–70] %, 4.00 s"]
 
 
 def test_the_readme_block_is_replaced_between_its_markers_only() -> None:
