@@ -321,8 +321,9 @@ def _curves(args: argparse.Namespace) -> int:
 
     if args.smooth < 1 or args.window_steps < 1:
         raise SystemExit("racebench curves: --smooth and --window-steps must be >= 1")
-    labels = dict(label.split("=", 1) for label in args.label if "=" in label)
-    if len(labels) < len(args.label):
+    given = args.label or []
+    labels = dict(label.split("=", 1) for label in given if "=" in label)
+    if len(labels) < len({label.split("=", 1)[0] for label in given}):
         raise SystemExit("racebench curves: --label takes RUN=NAME")
     try:
         if args.success:

@@ -181,7 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
         "or success_curves.png)",
     )
     p_curves.add_argument(
-        "--label", action="append", default=[], metavar="RUN=NAME",
+        "--label", action="append", default=None, metavar="RUN=NAME",
         help="with --success: name a run (as given) in the legend, e.g. the leaderboard's method name; repeatable",
     )  # fmt: skip
     p_curves.add_argument("--smooth", type=int, default=20, help="rolling mean over this many updates (default 20)")
