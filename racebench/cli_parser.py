@@ -181,8 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
         "or success_curves.png)",
     )
     p_curves.add_argument(
-        "--label", action="append", default=None, metavar="RUN=NAME",
-        help="with --success: name a run (as given) in the legend, e.g. the leaderboard's method name; repeatable",
+        "--label", action="append", default=None, metavar="LABEL",
+        help="with --success: RUN=NAME names a run (as given) in the legend, e.g. by its leaderboard method",
     )  # fmt: skip
     p_curves.add_argument("--smooth", type=int, default=20, help="rolling mean over this many updates (default 20)")
     p_curves.add_argument(
