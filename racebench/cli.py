@@ -264,7 +264,23 @@ def _plot(args: argparse.Namespace) -> int:
     if not 20 <= args.dpi <= 2400:
         raise SystemExit(f"racebench plot: --dpi must be in [20, 2400], got {args.dpi}")
     summary = _summaries(args.results, "plot")
-    out, fmt, dpi = Path(args.out), args.format, args.dpi
+    out, formats, dpi = Path(args.out), list(dict.fromkeys(args.format)), args.dpi
+    if args.leaderboard:
+        import pandas as pd
+
+        from racebench.evaluation.results import check_one_env_version, load_result_dir
+
+        try:
+            entries, versions = plots.entry_summary(args.leaderboard)
+            for path in args.results:  # a figure is of one env version: the entries' and the results' alike
+                folder, records = load_result_dir(path, strict=False)
+                versions[str(folder)] = records["env_version"]
+            check_one_env_version(versions)
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"racebench plot: --leaderboard: {exc}") from exc
+        if entries.empty:
+            log.warning(f"no verified learned entry in {args.leaderboard}: the figures show the results only")
+        summary = pd.concat([summary, entries], ignore_index=True)
     written = []
     for name, make in (
         ("success_by_track", lambda p: plots.plot_success_by_track(summary, p, dpi)),
@@ -272,10 +288,12 @@ def _plot(args: argparse.Namespace) -> int:
         ("success_vs_gate_shift", lambda p: plots.plot_success_vs(summary, "gates", p, dpi)),
         ("success_by_level", lambda p: plots.plot_success_vs(summary, "levels", p, dpi)),
     ):
-        try:
-            written.append(make(out / f"{name}.{fmt}"))
-        except ValueError as exc:  # a figure whose results are absent is skipped, with the reason
-            log.warning(f"skipped {name}: {exc}")
+        for fmt in formats:
+            try:
+                written.append(make(out / f"{name}.{fmt}"))
+            except ValueError as exc:  # a figure whose results are absent is skipped, with the reason
+                log.warning(f"skipped {name}: {exc}")
+                break
     if args.track_env:
         folders = [Path(r) if Path(r).is_dir() else Path(r).parent for r in args.results]  # a CSV: its folder
         sources = [folder for folder in folders if has_trajectories(folder)]
@@ -285,7 +303,9 @@ def _plot(args: argparse.Namespace) -> int:
             without = ", ".join(str(folder) for folder in folders if folder not in sources)
             log.warning(f"no saved trajectories in {without}: not in the track figure")
         try:
-            written.append(plots.plot_track_3d(sources, args.track_env, out / f"track_{args.track_env}.{fmt}", dpi=dpi))
+            for fmt in formats:
+                written.append(plots.plot_track_3d(sources, args.track_env, out / f"track_{args.track_env}.{fmt}",
+                                                   dpi=dpi))  # fmt: skip
         except ValueError as exc:
             raise SystemExit(f"racebench plot: {exc}") from exc
     for path in written:
@@ -301,14 +321,20 @@ def _curves(args: argparse.Namespace) -> int:
 
     if args.smooth < 1 or args.window_steps < 1:
         raise SystemExit("racebench curves: --smooth and --window-steps must be >= 1")
+    given = args.label or []
+    labels = dict(label.split("=", 1) for label in given if "=" in label)
+    if len(labels) < len({label.split("=", 1)[0] for label in given}):
+        raise SystemExit("racebench curves: --label takes RUN=NAME")
     try:
         if args.success:
-            out = args.out or "runs/figures/success_curves.png"
-            written = plot_success_curves(args.runs, out, args.window_steps, args.dpi)
+            outs = args.out or ["runs/figures/success_curves.png"]
+            plot_success_curves(args.runs, list(outs), args.window_steps, args.dpi, labels)
         else:
-            out = args.out or "runs/figures/training_curves.png"
-            written = plot_training_curves(args.runs, out, args.smooth, args.dpi)
-        log.info(f"wrote {written}")
+            outs = args.out or ["runs/figures/training_curves.png"]
+            for out in outs:
+                plot_training_curves(args.runs, out, args.smooth, args.dpi)
+        for out in outs:
+            log.info(f"wrote {out}")
     except ValueError as exc:
         raise SystemExit(f"racebench curves: {exc}") from exc
     return 0
@@ -470,7 +496,7 @@ def _paper_tables(args: argparse.Namespace) -> int:
             curve = validation_curve(run, trust_code=args.trust_code)
             log.info(f"{run}: validation success {', '.join(f'{r:.2f}' for r in curve['success_rate'])}")
         readme = None if args.no_readme else root / "README.md"
-        written = write_report(root, args.out, readme)
+        written = write_report(root, args.out, readme, args.campaign, args.references)
     except (OSError, ValueError) as exc:
         raise SystemExit(f"racebench paper-tables: {exc}") from exc
     _emit("\n".join(f"wrote {path}" for path in written))
@@ -485,19 +511,59 @@ def _compare(args: argparse.Namespace) -> int:
         sides, pairs = paired_comparison(args.a, args.b)
     except (OSError, ValueError) as exc:
         raise SystemExit(f"racebench compare: {exc}") from exc
+    paired = int(pairs["pairs"].iloc[-1])
     lines = [
-        f"{key}: {side.evaluation}: {side.agent} (policy {side.policy_sha256}) {side.successes}/{side.n} "
-        f"({100 * side.success_rate:.0f} % [{100 * side.sr_ci_low:.0f}–{100 * side.sr_ci_high:.0f}]), "
-        f"mean lap {side.lap_time_mean:.2f} s; failures {side.failures}"
+        f"{key}: {side.evaluation}: {side.agent} (policy {side.policy_sha256}): {side.n} episodes in the folder, "
+        f"{paired} paired; failures of all {side.n}: {side.failures}"
         for key, side in zip("ab", sides.itertuples(index=False), strict=True)
     ]  # fmt: skip
-    lines.append("laps only a / only b finished of the pairs (same env id and seed); p: McNemar's exact test")
-    lines.append(pairs.to_string(index=False, formatters={"p": "{:.3f}".format}))
+    lines.append(
+        "Per env id, on the paired episodes only (same env id and seed on both sides; a folder's other episodes are "
+        "left out): SR = successes/pairs, success rate in % [its 95 % Wilson interval]; lap = mean lap time of the "
+        "successful laps in seconds ('–': no successful lap)"
+    )
+    lines.append(compare_header(pairs).to_string(index=False))
+    lines.append("laps only a / only b finished of the pairs; p: McNemar's exact test on those discordant pairs")
+    lines.append(
+        pairs[["env_id", "pairs", "only_a", "only_b", "p"]].to_string(index=False, formatters={"p": "{:.3f}".format})
+    )
     _emit("\n".join(lines))
     if args.out:
         pairs.to_csv(args.out, index=False)
         log.info(f"wrote {args.out}")
     return 0
+
+
+def lap_text(seconds: float) -> str:
+    """A mean lap time as printed: seconds to 0.01 s, or "–" without a successful lap (NaN)."""
+    return "–" if seconds != seconds else f"{seconds:.2f}"  # NaN != NaN
+
+
+def compare_header(pairs: Any) -> Any:
+    """``racebench compare``'s per-env-id table of each side on the paired episodes (see its printed legend)."""
+    import pandas as pd
+
+    table = {"env_id": pairs["env_id"], "pairs": pairs["pairs"]}
+    for side in "ab":
+        table[f"{side} SR [%]"] = [
+            f"{k}/{n} {100 * k / n:.0f} [{100 * low:.0f}–{100 * high:.0f}]" if n else "–"
+            for k, n, low, high in zip(
+                pairs[f"successes_{side}"],
+                pairs["pairs"],
+                pairs[f"sr_ci_low_{side}"],
+                pairs[f"sr_ci_high_{side}"],
+                strict=True,
+            )  # fmt: skip
+        ]
+        table[f"{side} lap [s]"] = [lap_text(float(v)) for v in pairs[f"lap_time_mean_{side}"]]
+    return pd.DataFrame(table)
+
+
+#: What ``racebench evaluate`` prints above its summary table: what each column is, and its unit.
+SUMMARY_LEGEND = (
+    "n: episodes; success_rate: the share of them that finished the lap; sr_ci_low/sr_ci_high: its 95 % Wilson "
+    "interval; lap_time_mean: mean lap time of the successful episodes in seconds ('–': no successful lap)"
+)
 
 
 def _export_policy(args: argparse.Namespace) -> int:
@@ -574,7 +640,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     columns = ["env_id", "n", "successes", "success_rate", "sr_ci_low", "sr_ci_high", "lap_time_mean"]
     order = {env_id: i for i, env_id in enumerate(evaluator.env_ids)}
     shown = summary.sort_values("env_id", key=lambda ids: ids.map(order))
-    print(shown[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    print(SUMMARY_LEGEND)
+    print(shown[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}", na_rep="–"))
     log.info(f"wrote {evaluator.out_dir / 'episodes.csv'} and {evaluator.out_dir / 'summary.csv'}")
     asked = evaluator.selected  # the asked episodes, as just summarised
     failed = asked["crash_reason"].isin(["agent_error", "env_error"])

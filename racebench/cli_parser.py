@@ -111,6 +111,15 @@ def build_parser() -> argparse.ArgumentParser:
     p_paper.add_argument("--out", default="results", help="output folder (default: results)")
     p_paper.add_argument("--no-readme", action="store_true", help="leave README.md's results block as it is")
     p_paper.add_argument(
+        "--campaign", default="baselines/experiments/campaign-4m",
+        help="the campaign's run folder under --root (default: campaign 1, baselines/experiments/campaign-4m)",
+    )  # fmt: skip
+    p_paper.add_argument(
+        "--references", default="results/env-v2",
+        help="the reference agents' evaluations on the campaign's env version, under --root (default: results/env-v2, "
+        "campaign 1's)",
+    )  # fmt: skip
+    p_paper.add_argument(
         "--trust-code", action="store_true",
         help="--validation-curve: unpickle checkpoints this machine did not write (older runs, other machines)",
     )  # fmt: skip
@@ -150,7 +159,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="also draw the 3D track plot of this env id (Fig. 4): every result directory's saved trajectories",
     )
-    p_plot.add_argument("--format", default="png", choices=("png", "pdf", "svg"), help="file format (default png)")
+    p_plot.add_argument(
+        "--format", default=["png"], nargs="+", choices=("png", "pdf", "svg"),
+        help="file format(s): each figure is written once per format, e.g. --format png pdf (default png)",
+    )  # fmt: skip
+    p_plot.add_argument(
+        "--leaderboard", default=None, metavar="DIR",
+        help="also plot the learned methods of this leaderboard (e.g. results/leaderboard) that are verified: each "
+        "entry's own-track public-seed cells; their records must be of the results' env version",
+    )  # fmt: skip
     p_plot.add_argument("--dpi", type=int, default=300, help="resolution of PNGs in dots per inch (default 300)")
     p_curves = sub.add_parser(
         "curves", help="training curves (the paper's Fig. 5) from `racebench train` run directories"
@@ -159,8 +176,14 @@ def build_parser() -> argparse.ArgumentParser:
     p_curves.add_argument(
         "--out",
         default=None,
-        help="output file, .png, .pdf or .svg (default runs/figures/training_curves.png, or success_curves.png)",
+        nargs="+",
+        help="output file(s), .png, .pdf or .svg, e.g. --out f.png f.pdf (default runs/figures/training_curves.png, "
+        "or success_curves.png)",
     )
+    p_curves.add_argument(
+        "--label", action="append", default=None, metavar="LABEL",
+        help="with --success: RUN=NAME names a run (as given) in the legend, e.g. by its leaderboard method",
+    )  # fmt: skip
     p_curves.add_argument("--smooth", type=int, default=20, help="rolling mean over this many updates (default 20)")
     p_curves.add_argument(
         "--success",

@@ -146,6 +146,26 @@ def test_a_uint8_depth_policy_flies_the_standard_envs(tmp_path: Path) -> None:
     small.close()
 
 
+def test_a_stock_multiinput_policy_on_float_depth_is_warned_about_once(tmp_path: Path, caplog) -> None:
+    """Stock SB3 MultiInputPolicy on the default float32 depth flattens the image into an MLP: loading it says so
+    once per process, naming depth_format="uint8"; a uint8-depth policy (a NatureCNN) is not warned about."""
+    from racebench.agents import loading
+
+    flat = PPO("MultiInputPolicy", gym.make(LEVEL1), n_steps=32, batch_size=32, seed=0, device="cpu")
+    assert loading.flattens_depth(flat.policy)
+    flat.save(tmp_path / "flat.zip")
+    cnn = PPO(
+        "MultiInputPolicy", gym.make(LEVEL1, depth_format="uint8"), n_steps=32, batch_size=32, seed=0, device="cpu"
+    )
+    assert not loading.flattens_depth(cnn.policy)
+    loading._warned_flat_depth = False
+    with caplog.at_level("WARNING", logger="racebench"):
+        load_agent(str(tmp_path / "flat.zip"), trust_code=True)
+        load_agent(str(tmp_path / "flat.zip"), trust_code=True)
+    warnings = [r.getMessage() for r in caplog.records if "flattens the 64x64 depth" in r.getMessage()]
+    assert len(warnings) == 1 and 'depth_format="uint8"' in warnings[0]
+
+
 def test_onnx_external_data_is_part_of_the_policy_identity(tmp_path: Path) -> None:
     """Weights saved as external data beside the graph: changing them changes the hash; a missing file is named."""
     import onnx

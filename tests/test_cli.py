@@ -275,12 +275,23 @@ def test_evaluate_prints_the_mean_lap_as_the_tables_do(tmp_path: Path, capsys: p
     shutil.copytree(ROOT / "results" / "follow", out)  # every episode already flown: evaluate only summarises
     flown = ["--envs", "RaceObs-S-v0", "--episodes", "50"]  # all of that id's records, as read_summaries reads
     assert cli.main(["-q", "evaluate", "--agent", "follow", *flown, "--out", str(out)]) == 0
-    header, row = capsys.readouterr().out.splitlines()[:2]
+    legend, header, row = capsys.readouterr().out.splitlines()[:3]
+    assert legend == cli.SUMMARY_LEGEND
     assert header.split()[-1] == "lap_time_mean" and "median" not in header
     summary = read_summaries([out]).set_index("env_id")
     mean, median = summary.loc["RaceObs-S-v0", ["lap_time_mean", "lap_time_median"]]
     assert f"{mean:.3f}" != f"{median:.3f}"  # the test tells them apart
     assert row.split()[-1] == f"{mean:.3f}"
+
+
+def test_evaluate_explains_its_columns_and_prints_no_lap_as_a_dash(tmp_path: Path, capsys) -> None:
+    """The printed summary says what sr_ci_low/high are and the lap time's unit; a cell without a successful lap
+    prints "–", not "NaN"."""
+    assert cli.main(["-q", "evaluate", "--agent", "hover", "--envs", LEVEL1, "--episodes", "1",
+                     "--out", str(tmp_path / "hover")]) == 0  # fmt: skip
+    legend, header, row = capsys.readouterr().out.splitlines()[:3]
+    assert "sr_ci_low/sr_ci_high: its 95 % Wilson interval" in legend and "in seconds" in legend
+    assert row.split()[-1] == "–" and "nan" not in row.lower()
 
 
 def test_no_pybullet_banner_even_on_commands_that_load_it(tmp_path: Path) -> None:

@@ -721,7 +721,14 @@ def test_compare_pairs_two_evaluations_scene_by_scene_from_their_valid_records(t
     wins = int(follow.iloc[:4].sum())  # hover never finishes: every pair follow finished is discordant
     assert wins > 0  # seeds 1000000-1000001: follow finishes, so there are discordant pairs to count
     assert cli.main(["compare", str(a), str(b), "--out", str(tmp_path / "pairs.csv")]) == 0
-    assert "McNemar's exact test" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "McNemar's exact test" in out
+    # The header gives each side on the episodes actually paired, per env id, not every episode of its folder.
+    assert "6 episodes in the folder, 4 paired" in out and "8 episodes in the folder, 4 paired" in out
+    assert "95 % Wilson interval" in out and "in seconds" in out
+    s_row = next(line for line in out.splitlines() if line.strip().startswith("RaceObs-S-v0") and "/4" in line)
+    assert f"{wins}/4 " in s_row and "0/4 0 [0–" in s_row and s_row.split()[-1] == "–"  # hover: no lap, a dash
+    assert "RaceObs-J-Level1-v0" not in out  # flown by b only: in no pair, in no line of the header
     pairs = pd.read_csv(tmp_path / "pairs.csv").set_index("env_id")
     assert list(pairs.index) == ["RaceObs-S-v0", "all"]  # the J id was flown by one side only: not paired
     expected_p = binomtest(0, wins).pvalue if wins else 1.0

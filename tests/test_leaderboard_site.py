@@ -258,6 +258,29 @@ def test_table_iii_rows_are_vision_ppo_and_its_ablations_in_the_papers_order() -
     table = parse_html(html)  # the td cells: SR on S, 3D Circle, J
     assert table[1][0] == ("100 [72–100]", True) and table[3][0] == ("0 [0–28]", False)  # 10/10 apart from 0/10
     assert table[2][0] == ("20 [6–51]", False) and table[1][1] == ("–", False)  # no Circle policy: no cell
+    assert [line[-1][0] for line in table[1:]] == ["public"] * 3  # the seeds of each row's cells are named
+    verified = [row("vision-ppo", 6, "verified"), row("vision-no-gru", 9)]
+    assert "private (signed)" in table_iii_html(verified)
+
+
+def test_self_reported_methods_above_a_verified_one_are_noted(site: Path) -> None:
+    """strong (self-reported, 9/10 public) ranks above verified-onnx (5/10 signed private): the site says in one
+    line why the two do not compare like for like, and Table III names each row's seeds."""
+    from types import SimpleNamespace
+
+    from racebench.leaderboard.entries import Cell
+    from racebench.leaderboard.ranking import Row, above_verified, above_verified_note
+
+    text = (site / "index.html").read_text()
+    assert "strong scores above a verified method" in text  # weak (2/10) lies below it: not named
+    assert "Rows differ in their seeds" in text
+
+    def row(name: str, k: int, tier: str) -> Row:
+        return Row(SimpleNamespace(name=name), tier, {i: Cell(i, "public", 10, k, (5.0,) * k) for i in MAIN_IDS})
+
+    rows = [row("a", 9, "self-reported"), row("b", 2, "self-reported"), row("v", 5, "verified")]
+    assert above_verified(rows) == ["a"]
+    assert above_verified_note([row("a", 9, "self-reported")]) == ""  # no verified method: nothing to compare
 
 
 def test_entry_pages_show_trajectory_plots_and_on_demand_videos(tmp_path: Path, monkeypatch) -> None:

@@ -3,6 +3,7 @@ episodes, and the committed ``results/`` regenerated from the committed records 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from racebench.cli import main
 from racebench.envs.registration import DENSITIES, GATE_SHIFTS
 from racebench.evaluation.statistics import holm_adjust, trend_test
 from racebench.reporting.paper import (
+    PAPER_VARIANTS,
     README_BEGIN,
     README_END,
     at_a_glance,
@@ -143,6 +145,11 @@ def test_the_readme_block_sets_each_trained_row_below_the_papers() -> None:
     ]  # fmt: skip
     assert lines[4].split(" | ")[1:4] == ["30 %, 3.5 s", "20 %, 3.8 s", "30 %, 3.1 s"]  # the paper's Table II
     assert lines[5].split(" | ")[1:4] == ["45 [36–55] %, 4.00 s", "0 [0–4] %, no lap", "39 [30–49] %, 4.00 s"]
+    # Several training seeds: the same "SR [low–high] %" format, the row naming what the brackets are.
+    rows += [episodes_of("vision-ppo", f"RaceObs-{t}-v0", k, seed=1) for t, k in (("S", 90), ("Circle", 50), ("J", 60))]
+    lines = at_a_glance(pd.concat(rows, ignore_index=True)).splitlines()
+    assert lines[3].startswith("| `vision-ppo`: the paper's method, trained here (mean [range] of 2 training seeds) |")
+    assert lines[3].split(" | ")[1:4] == ["80 [70–90] %, 4.00 s", "60 [50–70] %, 4.00 s", "65 [60–70] %, 4.00 s"]
 
 
 def test_the_readme_block_is_replaced_between_its_markers_only() -> None:
@@ -290,3 +297,94 @@ def test_a_table_never_mixes_env_versions() -> None:
         load_episodes([Source("hover", old), Source("hover", new)])
     with pytest.raises(ValueError, match="several env versions"):
         read_summaries([old, new])
+
+
+def _validation_run(campaign: Path, name: str, points: dict[int, float], promotions=()) -> None:
+    run = campaign / name
+    run.mkdir(parents=True)
+    pd.DataFrame({"timesteps": list(points), "episodes": 100, "successes": [round(100 * v) for v in points.values()],
+                  "success_rate": list(points.values()), "mean_return": list(points.values())}).to_csv(
+        run / "validation_curve.csv", index=False)  # fmt: skip
+    (run / "curriculum.json").write_text(json.dumps({"level": 3, "promotions": [
+        {"level": level, "timestep": step, "wall_s": 0.0, "by": "bar"} for level, step in promotions]}))  # fmt: skip
+
+
+def test_learning_curves_join_seeds_and_resumed_parts_on_the_validation_grid(tmp_path: Path) -> None:
+    """Campaign 1's artefacts: a resumed seed's checkpoint at 3.16 M and two seeds' final points at 3.998 M and
+    4.002 M are one grid step each (3 M, 4 M), so the mean over seeds has no dip and no double point; a campaign
+    validating every 0.5 M gets its own grid; promotions are read; one legend for the figure, the track named in
+    every panel; PNG and PDF."""
+    from racebench.reporting.validation import learning_curves, read_curves, seed_statistics
+
+    campaign = tmp_path / "baselines/experiments/campaign-x"
+    _validation_run(campaign, "vision-ppo-Circle-seed0", {999_424: 0.0, 1_998_848: 0.04, 3_164_160: 0.01,
+                                                          4_001_792: 0.5}, [(2, 1_500_032)])  # fmt: skip
+    _validation_run(campaign, "vision-ppo-Circle-seed1", {999_424: 0.0, 1_998_848: 0.02, 2_998_272: 0.78,
+                                                          3_997_696: 0.73}, [(2, 1_290_048)])  # fmt: skip
+    _validation_run(campaign, "vision-ppo-S-seed0", {k * 500_000 + 2_000: 0.1 * k for k in range(1, 9)})
+    curves, promotions = read_curves(tmp_path, Path("baselines/experiments/campaign-x"))
+    stats = seed_statistics(curves, "success_rate")
+    circle = stats[stats["track"] == "Circle"].set_index("step")
+    assert list(circle.index) == [1_000_000, 2_000_000, 3_000_000, 4_000_000]
+    assert circle.loc[3_000_000, "mean"] == pytest.approx((0.01 + 0.78) / 2) and circle.loc[3_000_000, "seeds"] == 2
+    assert circle.loc[4_000_000, "seeds"] == 2
+    s_steps = stats[stats["track"] == "S"]["step"].tolist()
+    assert s_steps == [k * 500_000 for k in range(1, 9)]  # the denser grid of campaign 2
+    assert sorted(promotions["timestep"]) == [1_290_048, 1_500_032]
+    out = tmp_path / "out"
+    learning_curves(tmp_path, out, Path("baselines/experiments/campaign-x"))
+    assert (out / "figures" / "learning_curves.png").stat().st_size > 0
+    assert (out / "figures" / "learning_curves.pdf").read_bytes()[:4] == b"%PDF"
+    assert "step" in pd.read_csv(out / "learning_curves.csv").columns
+
+
+def test_the_learning_curve_figure_has_one_legend_and_names_the_track_in_every_panel(tmp_path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    from racebench.reporting.validation import learning_curves_figure, read_curves
+
+    campaign = tmp_path / "c"
+    for seed in range(3):
+        _validation_run(campaign, f"vision-ppo-J-seed{seed}", {1_000_000: 0.1 * seed, 2_000_000: 0.5},
+                        [(2, 800_000 + seed), (3, 1_600_000)])  # fmt: skip
+    curves, promotions = read_curves(tmp_path, Path("c"))
+    fig = learning_curves_figure(curves, promotions)
+    try:
+        assert all(ax.get_legend() is None for ax in fig.axes) and len(fig.legends) == 1
+        labels = [t.get_text() for t in fig.legends[0].get_texts()]
+        assert "vision-ppo (mean of 3 seeds, band: range)" in labels
+        assert {"curriculum promotion to level 2", "curriculum promotion to level 3"} <= set(labels)
+        titles = [ax.get_title() for ax in fig.axes]
+        assert all(any(name in title for name in ("S-shaped", "3D Circle", "J-shaped")) for title in titles)
+    finally:
+        plt.close(fig)
+
+
+def test_table_iv_figures_show_the_learned_method_the_paper_and_the_reference(tmp_path: Path) -> None:
+    """Per track: each training seed's rate with its Wilson interval, the mean over seeds, the paper's points and
+    planner-fast's line; written as PNG and PDF."""
+    import matplotlib.pyplot as plt
+
+    from racebench.reporting.paper import table_iv_figure, write_table_iv_figures
+
+    frames = [hand_made_campaign(), episodes_of("vision-ppo", "RaceObs-J-Density2-v0", 20, n=50, seed=1)]
+    frames += [episodes_of("planner-fast", f"RaceObs-{t}-Density{d}-v0", 9, n=10, seed=-1)
+               for t in TRACKS for d in DENSITIES]  # fmt: skip
+    episodes = pd.concat(frames, ignore_index=True)
+    fig = table_iv_figure(episodes, "table_iv_density")
+    try:
+        labels = [t.get_text() for t in fig.legends[0].get_texts()]
+        assert any(label.startswith("paper") for label in labels)
+        assert any("planner-fast" in label and "10 episodes" in label for label in labels)
+        assert any("95 % Wilson" in label and "50 episodes" in label for label in labels)
+        j = next(ax for ax in fig.axes if ax.get_title().startswith("J-shaped"))
+        assert j.get_title() == "J-shaped (2 seeds)"
+        paper = [line for line in j.get_lines() if line.get_marker() == "x"][0]
+        assert list(paper.get_ydata()) == [PAPER_VARIANTS[f"Density{d}"]["J"] for d in DENSITIES]
+        reference = [line for line in j.get_lines() if line.get_linestyle() == "--"][0]
+        assert list(reference.get_ydata()) == [90.0] * len(DENSITIES)
+    finally:
+        plt.close(fig)
+    written = write_table_iv_figures(episodes, tmp_path, 3)
+    assert sorted(p.name for p in written) == ["table_iv_density.pdf", "table_iv_density.png",
+                                               "table_iv_gate_shift.pdf", "table_iv_gate_shift.png"]  # fmt: skip

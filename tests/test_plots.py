@@ -13,10 +13,13 @@ from PIL import Image
 
 from racebench import cli
 from racebench.evaluation import read_summaries
+from racebench.evaluation.protocol import TRACK_ORDER
 from racebench.reporting import plots
 
 ROOT = Path(__file__).parents[1]
-RESULTS = [str(ROOT / "results" / name) for name in ("hover", "planner")]
+# The env-version-2 history of the built-ins (results/env-v2): stable records, while results/<agent> are re-flown.
+HISTORY = ROOT / "results" / "env-v2"
+RESULTS = [str(HISTORY / name) for name in ("hover", "planner")]
 
 
 @pytest.fixture(scope="module")
@@ -50,8 +53,21 @@ def test_zero_bars_differ_from_cells_without_results_and_the_legend_covers_no_ba
     plots.plt.close(fig)
 
 
-def test_track_figure_is_cropped_to_its_drawing(tmp_path: Path) -> None:
-    path = plots.plot_track_3d(ROOT / "results" / "planner", "RaceObs-S-v0", tmp_path / "t.png", dpi=80)
+@pytest.fixture(scope="module")
+def flown(tmp_path_factory) -> Path:
+    """One saved trajectory each of planner and planner-fast on S's first public seed (about a second each), and a
+    follow episode without one: the track figure's input, independent of the committed built-in folders."""
+    from racebench.evaluation import Evaluator
+
+    out = tmp_path_factory.mktemp("flown")
+    for agent in ("planner", "planner-fast"):
+        Evaluator(agent, ["RaceObs-S-v0"], episodes=1, out_dir=out / agent, save_trajectories=True).run(progress=False)
+    Evaluator("follow", ["RaceObs-S-v0"], episodes=1, out_dir=out / "follow").run(progress=False)  # no trajectory
+    return out
+
+
+def test_track_figure_is_cropped_to_its_drawing(flown: Path, tmp_path: Path) -> None:
+    path = plots.plot_track_3d(flown / "planner", "RaceObs-S-v0", tmp_path / "t.png", dpi=80)
     pixels = np.asarray(Image.open(path).convert("L"))
     blank_rows = np.all(pixels > 250, axis=1)
     height = len(blank_rows)
@@ -164,13 +180,18 @@ def test_seeds_of_one_config_are_drawn_as_a_mean_with_a_band(tmp_path: Path) -> 
     for seed in (0, 1):
         run = tmp_path / f"distill-seed{seed}"
         run.mkdir()
-        (run / "summary.json").write_text('{"method": "dagger", "config": {"name": "my-distill"}}')
+        (run / "summary.json").write_text(json.dumps({"method": "dagger", "config": {"name": "my-distill",
+                                                                                       "track": "J", "seed": seed}}))
         pd.DataFrame(
             {"iteration": [0, 1, 2], "success_rate": [1.0, 0.2 + 0.2 * seed, 0.6], "env_steps": [25e3, 50e3, 75e3],
              "samples": [25e3, 50e3, 75e3], "wall_s": [60 + seed, 120, 180]}
         ).to_csv(run / "progress.csv", index=False)  # fmt: skip
     svg = plots.plot_success_curves(sorted(tmp_path.glob("distill-seed*")), tmp_path / "seeds.svg").read_text()
-    assert "my-distill (2 seeds: mean, min–max)" in svg
+    assert "my-distill (mean of 2 training seeds 0, 1; band: min–max)" in svg
+    assert "Training success on J-shaped" in svg  # the track is named
+    (tmp_path / "distill-seed1" / "summary.json").write_text(json.dumps({"config": {"name": "my-distill", "seed": 0}}))
+    svg = plots.plot_success_curves(sorted(tmp_path.glob("distill-seed*")), tmp_path / "seeds.svg").read_text()
+    assert "my-distill (mean of 2 runs, training seeds 0, 0; band: min–max)" in svg  # runs, not seeds, counted
 
 
 def test_a_fine_tuning_is_drawn_after_the_student_it_started_from(tmp_path: Path) -> None:
@@ -206,9 +227,34 @@ def test_a_fine_tuning_is_drawn_after_the_student_it_started_from(tmp_path: Path
     assert plots.plot_success_curves(runs, tmp_path / "chain.png", dpi=60).is_file()
 
 
-def test_track_figure_draws_every_result_directory_by_agent(tmp_path: Path, capsys) -> None:
-    both = [str(ROOT / "results" / name) for name in ("planner", "planner-fast")]
-    hover = str(ROOT / "results" / "hover")  # no saved trajectories: named, not silently dropped
+def test_track_legend_sits_off_the_box_and_names_only_what_is_drawn(flown: Path, tmp_path: Path, monkeypatch) -> None:
+    """The legend lies below the 3D drawing (it covered the box), and a line style that no flight shows (every
+    flight successful) gets no entry (the grey "successful flight" was drawn nowhere)."""
+    from matplotlib.transforms import Bbox
+
+    kept = {}
+    save = plots._save
+
+    def capture(fig, path, dpi=plots.DEFAULT_DPI, bbox=None):
+        renderer = fig.canvas.get_renderer()
+        ax = fig.axes[0]
+        box = Bbox.union([a.get_tightbbox(renderer) for a in (ax.xaxis, ax.yaxis, ax.zaxis)])
+        kept["legend"], kept["box"] = fig.legends[0].get_window_extent(renderer), box
+        kept["labels"] = [t.get_text() for t in fig.legends[0].get_texts()]
+        return save(fig, path, dpi, bbox)
+
+    monkeypatch.setattr(plots, "_save", capture)
+    plots.plot_track_3d([flown / "planner", flown / "planner-fast"], "RaceObs-S-v0", tmp_path / "t.png", dpi=60)
+    assert kept["legend"].y1 <= kept["box"].y0 + 1  # below the drawing, not over it
+    assert not any("flight" in label for label in kept["labels"])  # both successful: no line-style entries
+    assert "planner (1/1 successful)" in kept["labels"]
+    plots.plot_track_3d(flown / "planner", "RaceObs-S-v0", tmp_path / "one.png", dpi=60)
+    assert "successful flight" in kept["labels"] and not any("failed" in label for label in kept["labels"])
+
+
+def test_track_figure_draws_every_result_directory_by_agent(flown: Path, tmp_path: Path, capsys) -> None:
+    both = [str(flown / name) for name in ("planner", "planner-fast")]
+    hover = str(flown / "follow")  # no saved trajectories: named, not silently dropped
     args = ["-q", "plot", *both, hover, "--track-env", "RaceObs-S-v0", "--format", "svg", "--dpi", "60"]
     assert cli.main([*args, "--out", str(tmp_path)]) == 0
     svg = (tmp_path / "track_RaceObs-S-v0.svg").read_text()
@@ -227,3 +273,49 @@ def test_agents_without_density_or_gate_shift_results_are_named(summary, tmp_pat
     err = capsys.readouterr().err.splitlines()
     assert "success_vs_density.svg: no obstacle density results of hover; left out" in err
     assert "success_vs_gate_shift.svg: no gate shift results of planner; left out" in err
+
+
+def test_learned_entries_join_the_figures_and_never_mix_env_versions(flown: Path, tmp_path: Path, monkeypatch) -> None:
+    """``racebench plot --leaderboard``: the verified learned entries' own-track public cells beside the references
+    (the fixture entry is self-reported, so it is shown only when that tier is asked for); records of another env
+    version than the results' are refused, not drawn."""
+    from leaderboard_fixtures import add, make_repo, write_hover_onnx, write_records
+
+    from racebench.leaderboard.entries import MAIN_IDS
+
+    board = make_repo(tmp_path / "repo")
+    policy = write_hover_onnx(tmp_path / "repo" / "p" / "mine.onnx")
+    for env_id in MAIN_IDS:
+        write_records(tmp_path / "repo" / "results" / "mine", str(policy), env_id, 7, 10)
+    add(board, str(policy), "mine", [tmp_path / "repo" / "results" / "mine"])
+    assert plots.entry_summary(board)[0].empty  # verified only, by default
+    entries, versions = plots.entry_summary(board, tiers=("self-reported",))
+    assert set(entries["agent"]) == {"mine (self-reported, public seeds)"}
+    assert sorted(entries["track"]) == sorted(TRACK_ORDER) and set(entries["success_rate"]) == {0.7}
+    assert set(versions) == {"leaderboard entry mine"}
+    monkeypatch.setattr(plots, "entry_summary", lambda leaderboard: (entries, dict(versions)))
+    args = ["-q", "plot", str(flown / "planner"), "--leaderboard", str(board), "--format", "svg", "--dpi", "60"]
+    assert cli.main([*args, "--out", str(tmp_path / "figs")]) == 0  # fixture records: this env version
+    assert "mine (self-reported, public seeds)" in (tmp_path / "figs" / "success_by_track.svg").read_text()
+    older = {"leaderboard entry mine": [2] * len(versions["leaderboard entry mine"])}
+    monkeypatch.setattr(plots, "entry_summary", lambda leaderboard: (entries, older))
+    with pytest.raises(SystemExit, match="--leaderboard: records of several env versions"):
+        cli.main([*args, "--out", str(tmp_path / "figs2")])
+
+
+def test_success_vs_cost_names_the_track_and_methods_and_keeps_its_legend_off_the_data(tmp_path: Path) -> None:
+    run = tmp_path / "vision-ppo-J-seed0"
+    run.mkdir()
+    (run / "summary.json").write_text(json.dumps({"config": "vision-ppo", "track": "J", "seed": 0}))
+    (run / "config.yaml").write_text("name: vision-ppo-gate-centre\n")
+    progress = {"timesteps": [1e5, 2e5, 3e5], "mean_return": [1.0, 2.0, 3.0], "success_rate": [0.1, 0.5, 0.6],
+                "level": [1, 2, 2], "wall_s": [10.0, 20.0, 30.0]}  # fmt: skip
+    pd.DataFrame(progress).to_csv(run / "progress.csv", index=False)
+    outs = [tmp_path / "cost.svg", tmp_path / "cost.pdf"]
+    assert cli.main(["-q", "curves", "--success", str(run), "--label", f"{run}=vision-ppo", "--out",
+                     *map(str, outs), "--dpi", "60"]) == 0  # fmt: skip
+    svg = outs[0].read_text()
+    assert "Training success on J-shaped" in svg and "vision-ppo (training seed 0)" in svg
+    assert "vision-ppo-gate-centre" not in svg  # the leaderboard's name given replaces the run's config name
+    assert "curriculum promotion to level k" in svg  # the "L2" markers explained
+    assert outs[1].read_bytes()[:4] == b"%PDF"

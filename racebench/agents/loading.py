@@ -42,6 +42,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import io
+import logging
 import pickle
 import sys
 import zipfile
@@ -77,6 +78,40 @@ from racebench.agents.trust import (
     sb3_stats_sha256,
 )
 from racebench.envs.env import depth_to_uint8
+
+logger = logging.getLogger("racebench.agents.loading")
+_warned_flat_depth = False  # the flattened-depth warning is given once per process
+
+
+def flattens_depth(policy: Any) -> bool:
+    """Whether an SB3 policy reads the ``depth`` image through a plain ``Flatten`` (stock ``MultiInputPolicy`` on
+    the default float32 depth, which SB3 does not take for an image) rather than a CNN."""
+    from stable_baselines3.common.torch_layers import CombinedExtractor
+    from torch import nn
+
+    extractors = [getattr(policy, name, None) for name in ("features_extractor", "pi_features_extractor")]
+    return any(
+        isinstance(e, CombinedExtractor) and isinstance(e.extractors["depth"], nn.Flatten)
+        for e in extractors
+        if e is not None and "depth" in getattr(e, "extractors", {})
+    )
+
+
+def warn_flattened_depth(policy: Any, source: str) -> bool:
+    """Say once per process that ``policy`` flattens the depth image into an MLP and how to get a CNN; True if it
+    does."""
+    global _warned_flat_depth
+    if not flattens_depth(policy):
+        return False
+    if not _warned_flat_depth:
+        _warned_flat_depth = True
+        logger.warning(
+            f"{source}: this policy flattens the 64x64 depth image into an MLP input (stock SB3 MultiInputPolicy on "
+            "the default float32 depth, which SB3 does not take for an image). Train on "
+            'gym.make(..., depth_format="uint8") for a NatureCNN on the depth (docs/training.md'
+            "#train-with-stock-stable-baselines3); racebench evaluates either."
+        )
+    return True
 
 
 def _unused_schedule(_progress_remaining: float) -> float:
@@ -134,6 +169,8 @@ class SB3Agent:
         self.obs_mode = obs_mode_of(self.model.observation_space)
         self.normalizer = _load_vecnormalize(stats_path, stats) if stats is not None else None
         self.uint8_depth = self.obs_mode == "vision" and self.model.observation_space["depth"].dtype == np.uint8
+        if self.obs_mode == "vision":
+            warn_flattened_depth(self.model.policy, str(path))
         self.recurrent = "Recurrent" in type(self.model.policy).__name__ or hasattr(self.model.policy, "recurrent")
         self.state: Any = None
         self.episode_start = np.ones((1,), dtype=bool)

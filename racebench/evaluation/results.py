@@ -218,8 +218,10 @@ def paired_comparison(a_dir: str | Path, b_dir: str | Path) -> tuple[pd.DataFram
     Each directory must hold one policy's episodes. Episodes are paired by ``(env_id, seed)``: the seed protocol
     gives both policies the same scenes, so a paired test (McNemar's exact test on the laps only one of them
     finished) tells apart rates whose unpaired Wilson intervals overlap. Returns ``(sides, pairs)``: per
-    directory its label, policy, episodes, successes, Wilson interval, mean lap and failure causes; per shared
-    env id, then ``all`` of them pooled, the pairs, each side's successes, ``only_a``, ``only_b`` and ``p``.
+    directory its label, policy, episodes, successes, Wilson interval, mean lap and failure causes (every episode of
+    the folder); per shared env id, then ``all`` of them pooled, the pairs and, on those paired episodes only, each
+    side's successes, 95 % Wilson interval (``sr_ci_low_a`` ...) and mean lap time of its successful laps
+    (``lap_time_mean_a``, seconds, NaN without one), then ``only_a``, ``only_b`` and ``p``.
     """
     episodes, sides = [], []
     for path, frame in (load_result_dir(a_dir, strict=False), load_result_dir(b_dir, strict=False)):
@@ -236,16 +238,22 @@ def paired_comparison(a_dir: str | Path, b_dir: str | Path) -> tuple[pd.DataFram
                       "n": n, "successes": wins, "success_rate": wins / n, "sr_ci_low": low, "sr_ci_high": high,
                       "lap_time_mean": pd.to_numeric(frame.loc[frame["success"], "lap_time"]).mean(),
                       "failures": {str(k): int(v) for k, v in causes.value_counts().items()}})  # fmt: skip
-        episodes.append(frame[["env_id", "seed", "success"]])
+        frame = frame.assign(lap_time=pd.to_numeric(frame["lap_time"]).where(frame["success"]))
+        episodes.append(frame[["env_id", "seed", "success", "lap_time"]])
     a, b = episodes
     shared = [env for env in a["env_id"].unique() if env in set(b["env_id"])]
     rows = []
     for env_id, part_a, part_b in [*((e, a[a["env_id"] == e], b[b["env_id"] == e]) for e in shared), ("all", a, b)]:
         pairs = part_a.merge(part_b, on=["env_id", "seed"], suffixes=("_a", "_b"))
-        n, only_a, only_b, p = paired_outcomes(part_a, part_b)
-        rows.append({"env_id": env_id, "pairs": n, "successes_a": int(pairs["success_a"].sum()),
-                     "successes_b": int(pairs["success_b"].sum()), "only_a": only_a, "only_b": only_b,
-                     "p": p})  # fmt: skip
+        n, only_a, only_b, p = paired_outcomes(part_a[["env_id", "seed", "success"]],
+                                               part_b[["env_id", "seed", "success"]])  # fmt: skip
+        row = {"env_id": env_id, "pairs": n}
+        for side in "ab":  # each side on the paired episodes only: what the test compares
+            wins = int(pairs[f"success_{side}"].sum())
+            low, high = wilson_interval(wins, n) if n else (float("nan"), float("nan"))
+            row |= {f"successes_{side}": wins, f"sr_ci_low_{side}": low, f"sr_ci_high_{side}": high,
+                    f"lap_time_mean_{side}": pairs[f"lap_time_{side}"].mean()}  # fmt: skip
+        rows.append({**row, "only_a": only_a, "only_b": only_b, "p": p})
     if rows[-1]["pairs"] == 0:
         raise ValueError(f"{str(a_dir)!r} and {str(b_dir)!r} share no (env_id, seed) episode to pair")
     return pd.DataFrame(sides), pd.DataFrame(rows)

@@ -47,6 +47,7 @@ from racebench.leaderboard.ranking import (
     _improvement_table,
     _paper_tables_section,
     _tier_badge,
+    above_verified_note,
     entry_row,
     rank,
     tier_tables,
@@ -136,6 +137,8 @@ def build_site(
                         f"<p>{_esc(TIER_TEXT[tier])}</p>")  # fmt: skip
         if members:
             sections.append(tier_tables(tier, members))
+            if tier == "self-reported":
+                sections.append(above_verified_note(list(rows.values())))
         elif tier == "verified":
             sections.append('<p class="note">No verified entries: no signed result checks against the pinned'
                             " maintainers' key (docs/leaderboard.md).</p>")  # fmt: skip

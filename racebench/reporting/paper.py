@@ -87,9 +87,9 @@ def discover_sources(
         match = RUN_FOLDER.match(run.name)
         if match and (run / "eval" / "summary.csv").is_file():
             sources.append(Source(match["config"], run / "eval", int(match["seed"]), match["track"]))
-    for seed in (1, 2):  # vision-ppo on S, training seeds 1-2: the A/B runs (same config, budget, env version)
+    for seed in (1, 2):  # vision-ppo on S, training seeds 1-2: the A/B runs (campaign 1's config, budget, env version)
         run = root / "baselines/experiments/ab-fast-update" / f"vision-ppo-S-seed{seed}"
-        if (run / "eval" / "summary.csv").is_file():
+        if Path(campaign) == CAMPAIGN and (run / "eval" / "summary.csv").is_file():
             sources.append(Source("vision-ppo", run / "eval", seed, "S"))
     for method in ("vision-distill", "vision-distill-ppo"):
         for track in TRACK_ORDER:
@@ -107,7 +107,7 @@ def load_episodes(sources: list[Source]) -> pd.DataFrame:
     (a per-track policy's episodes on other tracks left out: the paper flies each policy on its own track)."""
     frames = []
     loaded = [(source, load_records(source.folder, strict=True)) for source in sources]  # a dropped record: error
-    check_one_env_version({str(source.folder): records["env_version"] for source, records in loaded})
+    version = check_one_env_version({str(source.folder): records["env_version"] for source, records in loaded})
     for source, records in loaded:
         if records.empty:
             continue
@@ -126,7 +126,9 @@ def load_episodes(sources: list[Source]) -> pd.DataFrame:
         )
         frames.append(frame if source.track is None else frame[frame["track"] == source.track])
     columns = ["method", "training_seed", "env_id", "track", "variant", "seed", "success", "lap_time"]
-    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=columns)
+    episodes = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=columns)
+    episodes.attrs["env_version"] = version  # the one env version of every record read (None without any)
+    return episodes
 
 
 @dataclass(frozen=True)
@@ -266,6 +268,114 @@ def table_iv(episodes: pd.DataFrame, method: str = "vision-ppo") -> tuple[pd.Dat
             rows.append(_csv_row("IV", method, track, variant, found, paper, None))
         display[label] = line
     return pd.DataFrame.from_dict(display, orient="index"), rows
+
+
+#: The two Table IV figures: file stem, the variants' prefix, their x values and the x axis label.
+TABLE_IV_FIGURES: dict[str, tuple[list[str], list[float], str]] = {
+    "table_iv_density": ([f"Density{d}" for d in DENSITIES], [float(d) for d in DENSITIES], "obstacles per 2 gates"),
+    "table_iv_gate_shift": (
+        [f"GateShift{s}" for s in GATE_SHIFTS], [float(s) for s in GATE_SHIFTS], "gate shift ±[m]"
+    ),
+}
+FIGURE_FORMATS = ("png", "pdf")
+
+
+def table_iv_figure(
+    episodes: pd.DataFrame, factor: str, method: str = "vision-ppo", reference: str = "planner-fast",
+    title: str | None = None,
+):  # fmt: skip
+    """Table IV as a figure (``factor``: a :data:`TABLE_IV_FIGURES` key), one panel per track: ``method``'s success
+    rate per training seed with its 95 % Wilson interval, the mean over seeds with a band for their range, the
+    paper's numbers as markers and ``reference`` (the privileged planner, same env version) as a dashed line."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only; never needs a display
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    names, xs, xlabel = TABLE_IV_FIGURES[factor]
+    step = min(np.diff(xs)) if len(xs) > 1 else 1.0
+    fig, axes = plt.subplots(1, len(TRACK_ORDER), figsize=(11, 3.6), sharey=True, squeeze=False)
+    seeds_seen, n_seen, ref_n = set(), set(), set()
+    for ax, track in zip(axes[0], TRACK_ORDER, strict=True):
+        rows = episodes[(episodes["method"] == method) & (episodes["track"] == track) & episodes["variant"].isin(names)]
+        seeds = sorted(rows["training_seed"].unique())  # those flown on these ids (not only on the main id)
+        seeds_seen.add(len(seeds))
+        rates = pd.DataFrame(index=names, columns=seeds, dtype=float)
+        for j, seed in enumerate(seeds):
+            offset = (j - (len(seeds) - 1) / 2) * 0.08 * step
+            for x, variant in zip(xs, names, strict=True):
+                mine = rows[(rows["training_seed"] == seed) & (rows["variant"] == variant)]
+                if mine.empty:
+                    continue
+                k, n = int(mine["success"].sum()), len(mine)
+                n_seen.add(n)
+                low, high = wilson_interval(k, n)
+                rates.loc[variant, seed] = k / n
+                ax.errorbar(x + offset, 100 * k / n, yerr=[[100 * (k / n - low)], [100 * (high - k / n)]],
+                            fmt="o", markersize=3, color="tab:blue", alpha=0.55, capsize=2, linewidth=0.8)  # fmt: skip
+        if len(seeds):
+            mean, low, high = rates.mean(axis=1), rates.min(axis=1), rates.max(axis=1)
+            ax.plot(xs, 100 * mean, color="tab:blue", linewidth=1.8)
+            if len(seeds) > 1:
+                ax.fill_between(xs, 100 * low, 100 * high, color="tab:blue", alpha=0.15, linewidth=0)
+        else:
+            ax.text(0.5, 0.5, f"no {method} run", transform=ax.transAxes, ha="center", color="0.4", style="italic")
+        ref = episodes[(episodes["method"] == reference) & (episodes["track"] == track)]
+        ref_rates = [ref.loc[ref["variant"] == v, "success"] for v in names]
+        ref_n.update(len(r) for r in ref_rates if len(r))
+        ax.plot(xs, [100 * r.mean() if len(r) else np.nan for r in ref_rates], "--", color="0.35", linewidth=1.2,
+                marker=".", zorder=1)  # fmt: skip
+        ax.plot(xs, [PAPER_VARIANTS[v][track] for v in names], "x", color="tab:red", markersize=8,
+                markeredgewidth=1.8, zorder=4)  # fmt: skip
+        ax.set_title(f"{TRACK_NAMES[track]} ({len(seeds)} seed{'s' if len(seeds) != 1 else ''})", fontsize=10)
+        ax.set_xticks(xs)
+        ax.set_xlabel(xlabel)
+        ax.set_ylim(-4, 105)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("success rate [%]")
+    per_cell = "/".join(str(n) for n in sorted(n_seen)) or "–"
+    ref_cell = "/".join(str(n) for n in sorted(ref_n)) or "–"
+    handles = [
+        Line2D([], [], color="tab:blue", marker="o", markersize=3, alpha=0.55, linestyle="",
+               label=f"{method}: one training seed, 95 % Wilson interval ({per_cell} episodes)"),
+        Line2D([], [], color="tab:blue", linewidth=1.8, label=f"{method}: mean over training seeds"),
+        Patch(color="tab:blue", alpha=0.15, label=f"{method}: range over training seeds"),
+        Line2D([], [], color="tab:red", marker="x", linestyle="", markeredgewidth=1.8,
+               label="paper (Sun et al., Table IV; 10 trials)"),
+        Line2D([], [], color="0.35", linestyle="--", marker=".",
+               label=f"{reference} (privileged reference; {ref_cell} episodes)"),
+    ]  # fmt: skip
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, 0.14, 1, 1))
+    return fig
+
+
+def write_table_iv_figures(
+    episodes: pd.DataFrame, out: Path, env_version: int | None, campaign: Path = CAMPAIGN
+) -> list[Path]:
+    """Both Table IV figures of ``vision-ppo`` under ``out/figures`` as PNG and PDF (none without its episodes)."""
+    import matplotlib.pyplot as plt
+
+    if not (episodes["method"] == "vision-ppo").any():
+        return []
+    written = []
+    (out / "figures").mkdir(parents=True, exist_ok=True)
+    for stem in TABLE_IV_FIGURES:
+        what = "obstacle density" if stem.endswith("density") else "gate shift"
+        title = (f"vision-ppo's success rate against {what} ({Path(campaign).name}, "
+                 f"env version {env_version}; references on the same env version)")  # fmt: skip
+        fig = table_iv_figure(episodes, stem, title=title)
+        for fmt in FIGURE_FORMATS:
+            path = out / "figures" / f"{stem}.{fmt}"
+            metadata = {"Software": None} if fmt == "png" else {"Creator": None, "Producer": None, "CreationDate": None}
+            fig.savefig(path, dpi=200, bbox_inches="tight", pad_inches=0.05, metadata=metadata)
+            written.append(path)
+        plt.close(fig)
+    return written
 
 
 # ----------------------------------------------------------------------------------------------------- claims
@@ -491,9 +601,19 @@ def at_a_glance(episodes: pd.DataFrame, references: dict[str, dict[str, float]] 
     paper's numbers, the best racebench method (highest mean own-track success of the teacher-student rows) and the
     privileged reference, per track; then the reference lap times (:func:`lap_time_references`), when given."""
 
-    def track_cells(method: str) -> list[str]:
+    def track_cells(method: str) -> list[str]:  # one format for every row: "SR [low–high] %, lap"
         found = [cell(episodes, method, env_id_of(track)) for track in TRACK_ORDER]
-        return ["–" if c is None else f"{c.text()} %, {lap_text(c)}" for c in found]
+        return ["–" if c is None else f"{100 * c.success_rate:.0f} [{100 * c.low:.0f}–{100 * c.high:.0f}] %, "
+                f"{lap_text(c)}" for c in found]  # fmt: skip
+
+    def seeds_note(method: str) -> str:  # what the brackets of the row are: a Wilson interval or a seed range
+        found = [cell(episodes, method, env_id_of(track)) for track in TRACK_ORDER]
+        seeds = {TRACK_NAMES[t]: c.seeds for t, c in zip(TRACK_ORDER, found, strict=True) if c is not None}
+        if not seeds or max(seeds.values()) == 1:
+            return ""
+        if len(set(seeds.values())) == 1:
+            return f" (mean [range] of {next(iter(seeds.values()))} training seeds)"
+        return " (mean [range] of " + ", ".join(f"{k} seeds on {t}" for t, k in seeds.items()) + ")"
 
     def lap_text(c: Cell) -> str:
         return f"{c.text(lap=True)} s" if math.isfinite(c.lap_time) else "no lap"
@@ -508,14 +628,15 @@ def at_a_glance(episodes: pd.DataFrame, references: dict[str, dict[str, float]] 
     best = max(("vision-distill", "vision-distill-ppo"), key=mean_rate)
     rows = [
         ("paper: vision-based (ours), 10 trials", paper_cells("vision-ppo"), "100 M PPO steps", "–"),
-        ("`vision-ppo`: the paper's method, trained here", track_cells("vision-ppo"), *METHOD_NOTES["vision-ppo"]),
+        (f"`vision-ppo`: the paper's method, trained here{seeds_note('vision-ppo')}", track_cells("vision-ppo"),
+         *METHOD_NOTES["vision-ppo"]),
         ("paper: state-based (ours), 10 trials", paper_cells("state-ppo"), "100 M PPO steps", "–"),
         (
-            "`state-ppo`: the paper's method without depth, trained here",
+            f"`state-ppo`: the paper's method without depth, trained here{seeds_note('state-ppo')}",
             track_cells("state-ppo"),
             *METHOD_NOTES["state-ppo"],
         ),
-        (f"`{best}`: best racebench method", track_cells(best), *METHOD_NOTES[best]),
+        (f"`{best}`: best racebench method{seeds_note(best)}", track_cells(best), *METHOD_NOTES[best]),
         ("`planner-fast` (privileged reference)", track_cells("planner-fast"), *METHOD_NOTES["planner-fast"]),
     ]
     reference_rows = {
@@ -539,7 +660,9 @@ def at_a_glance(episodes: pd.DataFrame, references: dict[str, dict[str, float]] 
     lines += [
         "",
         "Success rate [95 % Wilson interval] on 50–100 unseen evaluation scenes of each track's main id (n per cell: "
-        "[`results/table_ii.csv`](results/table_ii.csv); several training seeds: their mean and range) and mean lap "
+        "[`results/table_ii.csv`](results/table_ii.csv)); a row of several training seeds (its name says how many) "
+        "gives their mean success rate [the lowest–highest seed's], on the public evaluation seeds (the leaderboard "
+        "site ranks a verified method on private seeds instead), and mean lap "
         "time of the successful laps; one policy per track. '–' marks a run of the campaign not yet committed. "
         "The last two rows are lap times, not policies: the lower bound below which record validation refuses a lap, "
         "and planner-fast's racing line flown at the airframe's full thrust (the fastest that line allows). "
@@ -562,13 +685,18 @@ def replace_readme_block(readme: str, block: str) -> str:
 
 
 def write_report(
-    root: str | Path = ".", out: str | Path = "results", readme: str | Path | None = "README.md"
+    root: str | Path = ".",
+    out: str | Path = "results",
+    readme: str | Path | None = "README.md",
+    campaign: str | Path = CAMPAIGN,
+    references: str | Path = REFERENCES,
 ) -> list[Path]:
-    """Write every table, ``claims.md``, ``at_a_glance.md`` and the learning curves under ``out``; update the README's
-    results block. Returns the files written."""
-    root, out = Path(root), Path(out)
+    """Write every table, ``claims.md``, ``at_a_glance.md``, the learning curves and the Table IV figures under
+    ``out``; update the README's results block. ``campaign`` and ``references`` are folders under ``root`` (campaign 1
+    and its env-version-2 references by default). Returns the files written."""
+    root, out, campaign = Path(root), Path(out), Path(campaign)
     out.mkdir(parents=True, exist_ok=True)
-    episodes = load_episodes(discover_sources(root))
+    episodes = load_episodes(discover_sources(root, campaign, references))
     references = lap_time_references(root)
     written = []
     for which, build in (("II", table_ii), ("III", table_iii), ("IV", table_iv)):
@@ -583,12 +711,13 @@ def write_report(
         for suffix, content in outputs.items():
             atomic_write(stem.with_suffix(suffix), content)
             written.append(stem.with_suffix(suffix))
-    atomic_write(out / "claims.md", claims_markdown(judge_claims(episodes), budget_note(root)))
+    atomic_write(out / "claims.md", claims_markdown(judge_claims(episodes), budget_note(root, campaign)))
     block = at_a_glance(episodes, references)
     atomic_write(out / "at_a_glance.md", block)
     written += [out / "claims.md", out / "at_a_glance.md"]
-    if learning_curves(root, out, CAMPAIGN) is not None:
-        written += [out / "learning_curves.csv", out / "figures" / "learning_curves.png"]
+    if learning_curves(root, out, campaign) is not None:
+        written += [out / "learning_curves.csv", *(out / "figures" / f"learning_curves.{f}" for f in FIGURE_FORMATS)]
+    written += write_table_iv_figures(episodes, out, episodes.attrs.get("env_version"), campaign)
     if readme is not None and Path(readme).is_file():
         text = Path(readme).read_text()
         atomic_write(Path(readme), replace_readme_block(text, block))

@@ -104,6 +104,35 @@ def success_by_track_figure(summary: pd.DataFrame) -> Any:
     return fig
 
 
+def entry_summary(
+    leaderboard: str | Path, tiers: tuple[str, ...] = ("verified",)
+) -> tuple[pd.DataFrame, dict[str, list[int]]]:
+    """Rows like :func:`racebench.evaluation.results.read_summaries`'s of the leaderboard's learned entries of
+    ``tiers`` (by default the verified ones): each entry's own-track public-seed cells (each track flown by its own
+    policy, as the site ranks self-reported entries and as the references are flown), labelled
+    ``<name> (<tier>, public seeds)``. Also the env versions of each entry's records, to check that a figure is of
+    one env version (:func:`racebench.evaluation.results.check_one_env_version`)."""
+    from racebench.evaluation.protocol import split_env_id
+    from racebench.leaderboard.entries import load_config, load_entries
+    from racebench.leaderboard.ranking import entry_row
+
+    config = load_config(leaderboard)
+    rows, versions = [], {}
+    for entry in load_entries(leaderboard):
+        tier = entry_row(entry, config).tier
+        if tier not in tiers:
+            continue
+        label = f"{entry.name} ({tier}, public seeds)"
+        for env_id, found in entry.own_cells().items():
+            track, variant = split_env_id(env_id)
+            low, high = found.interval
+            rows.append({"agent": label, "privileged": False, "env_id": env_id, "track": track, "variant": variant,
+                         "n": found.n, "successes": found.successes, "success_rate": found.success_rate,
+                         "sr_ci_low": low, "sr_ci_high": high, "lap_time_mean": found.lap_time_mean})  # fmt: skip
+        versions[f"leaderboard entry {entry.name}"] = [int(r["env_version"]) for r in entry.records]
+    return pd.DataFrame(rows), versions
+
+
 def plot_success_vs(summary: pd.DataFrame, factor: str, path: str | Path, dpi: int = DEFAULT_DPI) -> Path:
     """SR vs obstacle density (``factor="density"``), gate shift (``"gates"``) or curriculum level (``"levels"``,
     the ``-Level{1,2,3}`` ids), one panel per track; a level, density or shift without results is left out."""
@@ -253,25 +282,32 @@ def plot_track_3d(
         Patch(facecolor="tab:blue", alpha=0.35, label="obstacle"),
         Line2D([], [], color="tab:green", marker="o", linestyle="", label="start"),
     ]
-    if several:  # a colour per agent; the line style tells success from failure
+    if several:  # a colour per agent; the line style tells success from failure (said only when both occur)
         for label, colour in colours.items():
             mine = [r for r, *_ in runs if labels[(r["agent"], r.get("policy_sha256"))] == label]
             won = sum(bool(r["success"]) for r in mine)
             handles.append(Line2D([], [], color=colour, label=f"{label} ({won}/{len(mine)} successful)"))
-        handles.append(Line2D([], [], color="0.3", label="successful flight"))
+        if 0 < k < len(runs):
+            handles.append(Line2D([], [], color="0.3", label="solid: successful flight"))
         if k < len(runs):
-            handles.append(Line2D([], [], color="0.3", linestyle=":", marker="x", label="failed flight (x: end)"))
-    else:
-        handles.append(Line2D([], [], color="tab:green", label="successful flight"))
+            failed = "dotted: failed flight (x: end)"
+            handles.append(Line2D([], [], color="0.3", linestyle=":", marker="x", label=failed))
+    else:  # an entry only for what is drawn
+        if k:
+            handles.append(Line2D([], [], color="tab:green", label="successful flight"))
         if k < len(runs):
             handles.append(Line2D([], [], color="tab:red", linestyle=":", marker="x", label="failed flight (x: end)"))
-    legend = ax.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(0.0, 0.95), frameon=False)
-    # Crop to what is drawn: a 3D axes' own box (which "tight" keeps) is mostly blank below the track.
+    # Crop to what is drawn: a 3D axes' own box (which "tight" keeps) is mostly blank below the track. The legend
+    # goes below that drawing, never over the box.
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     parts = [axis.get_tightbbox(renderer) for axis in (ax.xaxis, ax.yaxis, ax.zaxis)]
-    parts += [ax.title.get_window_extent(renderer), legend.get_window_extent(renderer)]
-    drawn = Bbox.union([b for b in parts if b is not None and b.width > 0])
+    parts += [ax.title.get_window_extent(renderer)]
+    box = Bbox.union([b for b in parts if b is not None and b.width > 0])
+    anchor = ((box.x0 + box.x1) / 2 / fig.bbox.width, box.y0 / fig.bbox.height)
+    legend = fig.legend(handles=handles, fontsize=8, loc="upper center", bbox_to_anchor=anchor, ncol=3, frameon=False)
+    fig.canvas.draw()
+    drawn = Bbox.union([box, legend.get_window_extent(renderer)])
     return _save(fig, path, dpi, bbox=drawn.transformed(fig.dpi_scale_trans.inverted()).padded(0.18))
 
 
@@ -412,8 +448,36 @@ def offsets_after_students(runs: list[str | Path], progresses: list[pd.DataFrame
     return [offset(i, frozenset({i})) for i in range(len(runs))]
 
 
+def run_track_and_seed(run: str | Path) -> tuple[str | None, int | None]:
+    """A run's track and training seed from its ``summary.json`` (top level, or its config's for a DAgger run)."""
+    run = Path(run)
+    summary = (run if run.is_dir() else run.parent) / "summary.json"
+    if not summary.is_file():
+        return None, None
+    data = json.loads(summary.read_text())
+    config = data.get("config") if isinstance(data.get("config"), dict) else {}
+    track, seed = data.get("track", config.get("track")), data.get("seed", config.get("seed"))
+    return (str(track) if track else None), (int(seed) if isinstance(seed, int) else None)
+
+
+def _group_label(label: str, seeds: list[int | None]) -> str:
+    """A config's legend label: its training seeds counted as distinct seeds (as the README and tables count them);
+    where runs share a seed, the runs are counted and their seeds named."""
+    if len(seeds) == 1:
+        return label if seeds[0] is None else f"{label} (training seed {seeds[0]})"
+    known = sorted(s for s in seeds if s is not None)
+    named = ", ".join(str(s) for s in known) if len(known) == len(seeds) else "unknown"
+    if len(set(known)) == len(seeds):
+        return f"{label} (mean of {len(seeds)} training seeds {named}; band: min–max)"
+    return f"{label} (mean of {len(seeds)} runs, training seeds {named}; band: min–max)"
+
+
 def plot_success_curves(
-    runs: list[str | Path], path: str | Path, window_steps: int = 50_000, dpi: int = DEFAULT_DPI
+    runs: list[str | Path],
+    path: str | Path | list[str | Path],
+    window_steps: int = 50_000,
+    dpi: int = DEFAULT_DPI,
+    labels: dict[str, str] | None = None,
 ) -> Path:
     """Training success against environment steps (left) and against wall-clock time (right), one line per run
     or, where several runs share a config name (training seeds of one config), their mean with a min–max band.
@@ -425,8 +489,17 @@ def plot_success_curves(
     Every run needs a ``wall_s`` column (``racebench train`` writes one). A fine-tuning given together with the
     run of the policy it started from (``init_from``) is drawn after that run's steps and wall clock
     (:func:`offsets_after_students`), so its x axes show the whole cost.
+
+    ``labels`` names runs by path (e.g. the leaderboard's method name for the run its entry's policy came from);
+    the figure's title names the runs' track; the legend sits below the axes, off the data; ``path`` may be a list
+    (e.g. a PNG and a PDF), each written. Returns the first path.
     """
     loaded = _load_runs(runs)
+    given = {os.path.normpath(k): v for k, v in (labels or {}).items()}
+    loaded = [(given.get(os.path.normpath(str(run)), label), progress) for run, (label, progress) in zip(runs, loaded,
+              strict=True)]  # fmt: skip
+    meta = [run_track_and_seed(run) for run in runs]
+    tracks = sorted({t for t, _ in meta if t}, key=lambda t: TRACK_ORDER.index(t) if t in TRACK_ORDER else 9)
     for label, progress in loaded:
         if "wall_s" not in progress:
             raise ValueError(f"{label}: progress.csv has no wall_s column (wall-clock time is needed)")
@@ -438,21 +511,24 @@ def plot_success_curves(
         for (label, progress), (steps, wall) in zip(loaded, offsets, strict=True)
     ]
     groups: dict[str, list[pd.DataFrame]] = {}
-    for label, progress in loaded:
+    seeds: dict[str, list[int | None]] = {}
+    for (label, progress), (_, seed) in zip(loaded, meta, strict=True):
         groups.setdefault(label, []).append(progress)
+        seeds.setdefault(label, []).append(seed)
     fig, axes = plt.subplots(1, 2, figsize=(9.6, 3.6), sharey=True)
+    promoted_any = False
     for label, progresses in groups.items():
         curves = [smoothed_success(progress, window_steps) for progress in progresses]
+        name = _group_label(label, seeds[label])
         if len(curves) == 1:
             curve = curves[0]
             marker = "o" if len(curve) == 1 else None  # a single row is a point, not a line
-            (line,) = axes[0].plot(curve["timesteps"] / 1e6, curve["success"], label=label, marker=marker)
+            (line,) = axes[0].plot(curve["timesteps"] / 1e6, curve["success"], label=name, marker=marker)
             axes[1].plot(curve["wall_s"] / 60, curve["success"], color=line.get_color(), marker=marker)
         else:
             color = None
             for ax, x, scale in ((axes[0], "timesteps", 1e6), (axes[1], "wall_s", 60)):
                 band = seed_band(curves, x)
-                name = f"{label} ({len(curves)} seeds: mean, min–max)"
                 (line,) = ax.plot(band[x] / scale, band["mean"], color=color, label=name if color is None else None)
                 color = line.get_color()
                 ax.fill_between(band[x] / scale, band["min"], band["max"], color=color, alpha=0.2, linewidth=0)
@@ -464,6 +540,7 @@ def plot_success_curves(
                                           progress["wall_s"][promoted], strict=True):  # fmt: skip
                 promotions.setdefault(float(level), []).append((steps / 1e6, wall / 60))
         for level, reached in promotions.items():
+            promoted_any = True
             name = f"L{level:.0f}" + (f" {len(reached)}/{len(progresses)}" if len(progresses) > 1 else "")
             for ax, at in zip(axes, np.median(np.array(reached), axis=0), strict=True):
                 ax.axvline(at, color=line.get_color(), linestyle=":", linewidth=1)
@@ -473,11 +550,22 @@ def plot_success_curves(
     axes[1].set_xlabel("wall-clock [min]")
     axes[0].set_ylabel("training success [%]")
     axes[0].set_ylim(-2, 102)
-    axes[0].legend(loc="best", fontsize=8)
+    where = " and ".join(TRACK_NAMES.get(t, t) for t in tracks) if tracks else "its tracks"
+    fig.suptitle(f"Training success on {where} against environment steps and wall-clock", fontsize=10)
+    handles, names = axes[0].get_legend_handles_labels()
+    if promoted_any:
+        handles.append(Line2D([], [], color="0.4", linestyle=":", linewidth=1))
+        names.append("curriculum promotion to level k (Lk): at the median over the runs that reached it, "
+                     "'Lk m/n': m of the n runs did")  # fmt: skip
+    fig.legend(handles, names, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=1, fontsize=8, frameon=False)
     for ax in axes:
         ax.grid(alpha=0.3)
         ax.set_xlim(left=0)
-    return _save(fig, path, dpi)
+    paths = list(path) if isinstance(path, list | tuple) else [path]
+    for extra in paths[1:]:  # _save closes the figure: the other formats first
+        fig.tight_layout()
+        fig.savefig(_checked(extra, fig, dpi), dpi=dpi, bbox_inches="tight", pad_inches=0.05)
+    return _save(fig, paths[0], dpi)
 
 
 def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int = 20, dpi: int = DEFAULT_DPI) -> Path:
@@ -510,6 +598,16 @@ def plot_training_curves(runs: list[str | Path], path: str | Path, smooth: int =
     for ax in axes:
         ax.grid(alpha=0.3)
     return _save(fig, path, dpi)
+
+
+def _checked(path: str | Path, fig, dpi: int) -> Path:
+    """``path`` with its folder made, once its suffix and ``dpi`` are ones :func:`_save` accepts."""
+    path = Path(path)
+    if path.suffix.lower().lstrip(".") not in FIGURE_FORMATS or isinstance(dpi, bool) or not 20 <= dpi <= 2400:
+        plt.close(fig)
+        raise ValueError(f"{str(path)!r}: figures are written as {', '.join(FIGURE_FORMATS)}, at dpi in [20, 2400]")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
 
 
 def _save(fig, path: str | Path, dpi: int = DEFAULT_DPI, bbox: Bbox | None = None) -> Path:

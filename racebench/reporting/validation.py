@@ -15,6 +15,7 @@ from functools import partial
 from pathlib import Path
 
 import gymnasium as gym
+import numpy as np
 import pandas as pd
 
 from racebench.agents.loading import load_agent
@@ -97,44 +98,157 @@ def _raycast_env(env_id: str, obs_mode: str):
     return gym.make(env_id, obs_mode=obs_mode, renderer="raycast")  # the observation the agent was trained on
 
 
-def learning_curves(root: Path, out: Path, campaign: Path) -> pd.DataFrame | None:
-    """One CSV and one figure (a panel per track) of every campaign run's validation success and training return."""
-    frames = []
+#: Validation points are put on a grid of this resolution at the finest (a run's own spacing, e.g. 0.5 M or 1 M).
+GRID_RESOLUTION = 100_000
+
+
+def validation_spacing(timesteps: pd.Series) -> int:
+    """The spacing of a run's validation points (its ``every``): the median gap, to :data:`GRID_RESOLUTION`."""
+    steps = sorted(timesteps)
+    if len(steps) < 2:
+        return GRID_RESOLUTION
+    gap = float(pd.Series(steps).diff().median())
+    return max(GRID_RESOLUTION, round(gap / GRID_RESOLUTION) * GRID_RESOLUTION)
+
+
+def on_grid(curve: pd.DataFrame) -> pd.DataFrame:
+    """One run's validation points with ``step``, the multiple of its spacing each was flown for.
+
+    A checkpoint lies at or up to a rollout past its multiple (and a resumed run's part may save it later still,
+    e.g. 3.16 M for 3 M), so the seeds of a config are joined on ``step``, the absolute step count each point
+    stands for, not on the checkpoints' exact counts. Where two points of one run fall on one step, the later is
+    kept."""
+    every = validation_spacing(curve["timesteps"])
+    curve = curve.assign(step=(curve["timesteps"] / every).round().astype(int) * every)
+    return curve.sort_values("timesteps").drop_duplicates("step", keep="last").reset_index(drop=True)
+
+
+def read_promotions(run_dir: Path) -> list[tuple[int, int]]:
+    """``(level, timestep)`` of each curriculum promotion of a run (its ``curriculum.json``; none without one)."""
+    path = run_dir / "curriculum.json"
+    if not path.is_file():
+        return []
+    return [(int(p["level"]), int(p["timestep"])) for p in json.loads(path.read_text()).get("promotions", [])]
+
+
+def read_curves(root: Path, campaign: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Every campaign run's validation points (``run``, ``config``, ``track``, ``training_seed``, ``step`` and the
+    file's columns) and curriculum promotions (``config``, ``track``, ``training_seed``, ``level``, ``timestep``)."""
+    frames, promotions = [], []
     for path in sorted((root / campaign).glob("*-seed*/validation_curve.csv")):
         match = RUN_FOLDER.match(path.parent.name)
-        frame = pd.read_csv(path)
-        frame.insert(0, "run", path.parent.name)
-        frame.insert(1, "config", match["config"])
-        frame.insert(2, "track", match["track"])
-        frame.insert(3, "training_seed", int(match["seed"]))
+        if match is None:
+            continue
+        frame = on_grid(pd.read_csv(path))
+        ids = {"run": path.parent.name, "config": match["config"], "track": match["track"],
+               "training_seed": int(match["seed"])}  # fmt: skip
+        for i, (key, value) in enumerate(ids.items()):
+            frame.insert(i, key, value)
         frames.append(frame)
-    if not frames:
-        return None
-    curves = pd.concat(frames, ignore_index=True)
-    atomic_write(out / "learning_curves.csv", curves.to_csv(index=False))
+        for level, timestep in read_promotions(path.parent):
+            promotions.append({**{k: v for k, v in ids.items() if k != "run"}, "level": level, "timestep": timestep})
+    curves = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    columns = ["config", "track", "training_seed", "level", "timestep"]
+    return curves, pd.DataFrame(promotions, columns=columns)
+
+
+def seed_statistics(curves: pd.DataFrame, column: str) -> pd.DataFrame:
+    """Per ``config``, ``track`` and ``step``: the mean, min and max of ``column`` over the training seeds with a
+    point there, and their number ``seeds``."""
+    grouped = curves.groupby(["config", "track", "step"])[column]
+    return grouped.agg(["mean", "min", "max", "size"]).rename(columns={"size": "seeds"}).reset_index()
+
+
+#: Markers of a curriculum promotion, by the level reached.
+PROMOTION_MARKERS = {2: "^", 3: "D"}
+
+
+def learning_curves_figure(curves: pd.DataFrame, promotions: pd.DataFrame, title: str | None = None):
+    """The figure of :func:`learning_curves`: a column per track, validation success (top) and training return
+    (bottom) per config, the mean over its training seeds with a band for their range; a config's curriculum
+    promotions (the median step over its seeds that reached the level) as markers on its success curve; one legend."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
-    fig, axes = plt.subplots(2, 3, figsize=(12, 6), sharex=True, squeeze=False)
+    configs = sorted(curves["config"].unique())
+    colours = {c: plt.get_cmap("tab10")(i % 10) for i, c in enumerate(configs)}
+    success, returns = seed_statistics(curves, "success_rate"), seed_statistics(curves, "mean_return")
+    fig, axes = plt.subplots(2, len(TRACK_ORDER), figsize=(12.5, 6.4), sharex=True, squeeze=False)
     for col, track in enumerate(TRACK_ORDER):
-        for config, group in curves[curves["track"] == track].groupby("config", sort=True):
-            mean = group.groupby("timesteps")[["success_rate", "mean_return"]].mean()
-            axes[0][col].plot(mean.index / 1e6, 100 * mean["success_rate"], marker="o", label=config)
-            axes[1][col].plot(mean.index / 1e6, mean["mean_return"], marker="o", label=config)
+        top, bottom = axes[0][col], axes[1][col]
+        for config in configs:
+            for ax, stats, scale in ((top, success, 100.0), (bottom, returns, 1.0)):
+                mine = stats[(stats["config"] == config) & (stats["track"] == track)]
+                if mine.empty:
+                    continue
+                x = mine["step"] / 1e6
+                ax.plot(x, scale * mine["mean"], marker="o", markersize=3, color=colours[config], linewidth=1.4)
+                if (mine["seeds"] > 1).any():
+                    ax.fill_between(x, scale * mine["min"], scale * mine["max"], color=colours[config], alpha=0.15,
+                                    linewidth=0)  # fmt: skip
+            mine = success[(success["config"] == config) & (success["track"] == track)]
+            reached = promotions[(promotions["config"] == config) & (promotions["track"] == track)]
+            for level, group in reached.groupby("level"):
+                at = float(group["timestep"].median()) / 1e6
+                if mine.empty:
+                    continue
+                y = 100 * float(np.interp(at, mine["step"] / 1e6, mine["mean"]))
+                top.plot([at], [y], PROMOTION_MARKERS.get(int(level), "s"), color=colours[config],
+                         markeredgecolor="black", markeredgewidth=0.6, markersize=6, zorder=3)  # fmt: skip
         if not (curves["track"] == track).any():
-            for row in (0, 1):
-                axes[row][col].text(0.5, 0.5, "no run committed yet", ha="center", va="center",
-                                    transform=axes[row][col].transAxes, color="grey")  # fmt: skip
-        axes[0][col].set_ylim(0, 100)
-        axes[0][col].set_title(TRACK_NAMES[track])
-        axes[1][col].set_xlabel("environment steps [M]")
+            for ax in (top, bottom):
+                ax.text(0.5, 0.5, "no run committed yet", ha="center", va="center", transform=ax.transAxes,
+                        color="grey")  # fmt: skip
+        top.set_ylim(-3, 103)
+        top.set_title(f"{TRACK_NAMES[track]}: validation success", fontsize=10)
+        bottom.set_title(f"{TRACK_NAMES[track]}: training return", fontsize=10)
+        bottom.set_xlabel("environment steps [M]")
+        for ax in (top, bottom):
+            ax.grid(alpha=0.3)
+            ax.set_xlim(left=0)
     axes[0][0].set_ylabel("validation success [%]")
-    axes[1][0].set_ylabel("training return")
-    axes[0][-1].legend(fontsize=7)
-    fig.tight_layout()
+    axes[1][0].set_ylabel("training return (mean episode)")
+    seeds = curves.groupby(["config", "track"])["training_seed"].nunique().groupby("config").max()
+    handles = [
+        Line2D([], [], color=colours[c], marker="o", markersize=3,
+               label=f"{c} (mean of {seeds[c]} seeds, band: range)" if seeds[c] > 1 else f"{c} (1 seed)")
+        for c in configs
+    ]  # fmt: skip
+    for level, marker in PROMOTION_MARKERS.items():
+        if (promotions["level"] == level).any():
+            handles.append(Line2D([], [], linestyle="", marker=marker, color="0.6", markeredgecolor="black",
+                                  label=f"curriculum promotion to level {level}"))  # fmt: skip
+    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8, frameon=False, bbox_to_anchor=(0.5, 0.0))
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    return fig
+
+
+#: The formats the learning-curve figure is written in.
+CURVE_FORMATS = ("png", "pdf")
+
+
+def learning_curves(root: Path, out: Path, campaign: Path) -> pd.DataFrame | None:
+    """One CSV (``learning_curves.csv``: every campaign run's validation points, with their grid ``step``) and one
+    figure (``figures/learning_curves.{png,pdf}``, :func:`learning_curves_figure`) of the campaign's runs."""
+    curves, promotions = read_curves(root, campaign)
+    if curves.empty:
+        return None
+    atomic_write(out / "learning_curves.csv", curves.to_csv(index=False))
+    import matplotlib.pyplot as plt
+
+    every = sorted({validation_spacing(g["timesteps"]) / 1e6 for _, g in curves.groupby("run")})
+    episodes = "/".join(str(n) for n in sorted(curves["episodes"].unique()))
+    title = (f"{Path(campaign).name}: validation success on {episodes} validation scenes per point (every "
+             f"{'/'.join(f'{e:g}' for e in every)} M steps) and training return")  # fmt: skip
+    fig = learning_curves_figure(curves, promotions, title)
     (out / "figures").mkdir(parents=True, exist_ok=True)
-    fig.savefig(out / "figures" / "learning_curves.png", dpi=150, metadata={"Software": None})
+    for fmt in CURVE_FORMATS:
+        metadata = {"Software": None} if fmt == "png" else {"Creator": None, "Producer": None, "CreationDate": None}
+        fig.savefig(out / "figures" / f"learning_curves.{fmt}", dpi=150, metadata=metadata)
     plt.close(fig)
     return curves
