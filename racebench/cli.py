@@ -12,54 +12,18 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
-
 import racebench
-from racebench.agents.base import BUILTIN_AGENTS
 from racebench.cli_parser import build_parser, parser_of
+from racebench.evaluation.fly import fly, make_env  # noqa: F401 (racebench.cli.fly, as before)
 from racebench.utils.files import sha256_file
 
+#: What ``racebench evaluate`` prints above its summary table: what each column is, and its unit.
+SUMMARY_LEGEND = (
+    "n: episodes; success_rate: the share of them that finished the lap; sr_ci_low/sr_ci_high: its 95 % Wilson "
+    "interval; lap_time_mean: mean lap time of the successful episodes in seconds ('–': no successful lap)"
+)
 SCENE_FORMATS: tuple[str, ...] = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")
 log = logging.getLogger("racebench")
-
-
-def _make(env_id: str, **kwargs) -> gym.Env:
-    if env_id not in gym.registry and env_id not in racebench.ENV_IDS:
-        raise SystemExit(f"racebench: unknown environment id {env_id!r}; `racebench envs` lists them")
-    return gym.make(env_id, **kwargs)
-
-
-def fly(
-    env_id: str,
-    agent: str,
-    seed: int,
-    obs_mode: str | None = None,
-    trust_code: bool = False,
-    agent_kwargs: dict | None = None,
-    vecnormalize: str | Path | bool | None = None,
-) -> dict:
-    """Fly one episode of ``env_id`` with any agent spec ``evaluate`` accepts; return its outcome as a dict.
-    ``vecnormalize``: an SB3 checkpoint's statistics (:func:`racebench.agents.trust.resolve_vecnormalize`).
-
-    Raises :class:`~racebench.agents.base.AgentLoadError` on a bad spec, an untrusted one without ``trust_code``, or an
-    ``obs_mode`` other than the one the policy reads (built-in agents, which never read their observation, fly
-    either).
-    """
-    from racebench.agents.base import AgentLoadError
-    from racebench.agents.loading import load_agent
-    from racebench.evaluation.rollout import run_episode
-    from racebench.evaluation.worker import SingleTorchThread
-
-    pilot = load_agent(agent, trust_code=trust_code, agent_kwargs=agent_kwargs, vecnormalize=vecnormalize)
-    if obs_mode is not None and obs_mode != pilot.obs_mode and agent not in BUILTIN_AGENTS:
-        # checked before flying: the policy would otherwise fail inside its first act() with an obscure message
-        raise AgentLoadError(f"this policy takes {pilot.obs_mode} observations (use --obs-mode {pilot.obs_mode})")
-    env = _make(env_id, obs_mode=obs_mode or pilot.obs_mode)
-    with SingleTorchThread():
-        result = run_episode(pilot, env, seed)
-    env.close()
-    truncated = not (result["success"] or result["crashed"] or result["error"])
-    return {"env_id": env_id, "agent": agent, "seed": seed, **result, "truncated": truncated}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -145,7 +109,7 @@ def _scene(args: argparse.Namespace) -> int:
     if suffix not in SCENE_FORMATS:
         formats = ", ".join(SCENE_FORMATS)
         raise SystemExit(f"racebench scene: --out {args.out!r}: not a mesh format; use one of {formats}")
-    env = _make(args.env, obs_mode="state")
+    env = make_env(args.env, obs_mode="state")
     env.reset(seed=args.seed)
     scene = env.unwrapped.scene
     path = scene.export(args.out)
@@ -346,7 +310,7 @@ def _render(args: argparse.Namespace) -> int:
     from racebench.agents.trust import parse_agent_kwargs
     from racebench.reporting.video import outcome_text, render_episode_video
 
-    _make(args.env)  # validates the id with a clear message
+    make_env(args.env)  # validates the id with a clear message
     if not 1 <= args.fps <= 50:
         raise SystemExit(f"racebench render: --fps must be in [1, 50] (the control rate), got {args.fps}")
     try:
@@ -522,6 +486,8 @@ def _compare(args: argparse.Namespace) -> int:
         "left out): SR = successes/pairs, success rate in % [its 95 % Wilson interval]; lap = mean lap time of the "
         "successful laps in seconds ('–': no successful lap)"
     )
+    from racebench.reporting.tables import compare_header
+
     lines.append(compare_header(pairs).to_string(index=False))
     lines.append("laps only a / only b finished of the pairs; p: McNemar's exact test on those discordant pairs")
     lines.append(
@@ -532,38 +498,6 @@ def _compare(args: argparse.Namespace) -> int:
         pairs.to_csv(args.out, index=False)
         log.info(f"wrote {args.out}")
     return 0
-
-
-def lap_text(seconds: float) -> str:
-    """A mean lap time as printed: seconds to 0.01 s, or "–" without a successful lap (NaN)."""
-    return "–" if seconds != seconds else f"{seconds:.2f}"  # NaN != NaN
-
-
-def compare_header(pairs: Any) -> Any:
-    """``racebench compare``'s per-env-id table of each side on the paired episodes (see its printed legend)."""
-    import pandas as pd
-
-    table = {"env_id": pairs["env_id"], "pairs": pairs["pairs"]}
-    for side in "ab":
-        table[f"{side} SR [%]"] = [
-            f"{k}/{n} {100 * k / n:.0f} [{100 * low:.0f}–{100 * high:.0f}]" if n else "–"
-            for k, n, low, high in zip(
-                pairs[f"successes_{side}"],
-                pairs["pairs"],
-                pairs[f"sr_ci_low_{side}"],
-                pairs[f"sr_ci_high_{side}"],
-                strict=True,
-            )  # fmt: skip
-        ]
-        table[f"{side} lap [s]"] = [lap_text(float(v)) for v in pairs[f"lap_time_mean_{side}"]]
-    return pd.DataFrame(table)
-
-
-#: What ``racebench evaluate`` prints above its summary table: what each column is, and its unit.
-SUMMARY_LEGEND = (
-    "n: episodes; success_rate: the share of them that finished the lap; sr_ci_low/sr_ci_high: its 95 % Wilson "
-    "interval; lap_time_mean: mean lap time of the successful episodes in seconds ('–': no successful lap)"
-)
 
 
 def _export_policy(args: argparse.Namespace) -> int:
@@ -640,7 +574,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     columns = ["env_id", "n", "successes", "success_rate", "sr_ci_low", "sr_ci_high", "lap_time_mean"]
     order = {env_id: i for i, env_id in enumerate(evaluator.env_ids)}
     shown = summary.sort_values("env_id", key=lambda ids: ids.map(order))
-    print(SUMMARY_LEGEND)
+    print(SUMMARY_LEGEND)  # what each column is, and its unit
     print(shown[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}", na_rep="–"))
     log.info(f"wrote {evaluator.out_dir / 'episodes.csv'} and {evaluator.out_dir / 'summary.csv'}")
     asked = evaluator.selected  # the asked episodes, as just summarised

@@ -35,7 +35,7 @@ done
 [[ $PHASES == *3* ]] && for config in vision-distill vision-distill-ppo; do
   for t in S J Circle; do
     p=baselines/checkpoints/$config-$t
-    others=$(for o in S Circle J; do [ $o != $t ] && echo -n "RaceObs-$o-v0 "; done)
+    others=$(for o in S Circle J; do if [ $o != $t ]; then echo -n "RaceObs-$o-v0 "; fi; done)
     # shellcheck disable=SC2086
     ev --agent "$p/$config-$t.zip" --name $config --envs $others --episodes 50 --out "$OUT/$p/eval"
   done

@@ -243,7 +243,9 @@ def test_track_legend_sits_off_the_box_and_names_only_what_is_drawn(flown: Path,
         kept["labels"] = [t.get_text() for t in fig.legends[0].get_texts()]
         return save(fig, path, dpi, bbox)
 
-    monkeypatch.setattr(plots, "_save", capture)
+    from racebench.reporting import track_plot
+
+    monkeypatch.setattr(track_plot, "_save", capture)
     plots.plot_track_3d([flown / "planner", flown / "planner-fast"], "RaceObs-S-v0", tmp_path / "t.png", dpi=60)
     assert kept["legend"].y1 <= kept["box"].y0 + 1  # below the drawing, not over it
     assert not any("flight" in label for label in kept["labels"])  # both successful: no line-style entries

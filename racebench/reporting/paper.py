@@ -34,14 +34,28 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from racebench.envs.lap_bound import env_lap_time_bound
 from racebench.envs.registration import DENSITIES, GATE_SHIFTS
 from racebench.evaluation.protocol import TRACK_ORDER, env_id_of, split_env_id
 from racebench.evaluation.results import check_one_env_version, load_records
-from racebench.evaluation.statistics import holm_adjust, paired_outcomes, trend_test, wilson_interval
+from racebench.reporting.cells import Cell, cell  # noqa: F401 (re-exported)
+from racebench.reporting.claims import (  # noqa: F401 (re-exported)
+    ALPHA,
+    Claim,
+    claims_markdown,
+    difference_claim,
+    judge_claims,
+    one_step_fails,
+    trend_claim,
+)
+from racebench.reporting.paper_figures import (  # noqa: F401 (re-exported)
+    FIGURE_FORMATS,
+    TABLE_IV_FIGURES,
+    table_iv_figure,
+    write_table_iv_figures,
+)
 from racebench.reporting.paper_numbers import PAPER_LAP_TIME, PAPER_SUCCESS, PAPER_VARIANTS  # noqa: F401 (re-exported)
 from racebench.reporting.tables import TRACK_NAMES, render
 from racebench.reporting.validation import RUN_FOLDER, learning_curves
@@ -64,7 +78,6 @@ LOWER_BOUND = "lap-time lower bound"
 LINE_AT_FULL_THRUST = "planner-fast's line at full thrust"
 LINE_TIMES = Path("baselines/experiments/planner_fast_line_times.txt")
 LINE_TIMES_COLUMN = "planner-fast's line at full thrust (s)"
-ALPHA = 0.05
 
 
 @dataclass(frozen=True)
@@ -129,52 +142,6 @@ def load_episodes(sources: list[Source]) -> pd.DataFrame:
     episodes = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=columns)
     episodes.attrs["env_version"] = version  # the one env version of every record read (None without any)
     return episodes
-
-
-@dataclass(frozen=True)
-class Cell:
-    """One table cell: a method on one env id, over its training seeds."""
-
-    n: int  # episodes per training seed (the smallest)
-    seeds: int
-    success_rate: float  # the seeds' mean
-    low: float  # one seed: the 95 % Wilson interval; several: the lowest and highest seed
-    high: float
-    lap_time: float  # the mean of the seeds' mean lap times (nan without a lap)
-
-    def text(self, paper: float | None = None, lap: bool = False) -> str:
-        """``72 [63–80]`` (one seed), ``75 (3 seeds 70–80)`` (several), with `` · paper X`` when given."""
-        if lap:
-            body = "–" if not math.isfinite(self.lap_time) else f"{self.lap_time:.2f}"
-        elif self.seeds == 1:
-            body = f"{100 * self.success_rate:.0f} [{100 * self.low:.0f}–{100 * self.high:.0f}]"
-        else:
-            body = f"{100 * self.success_rate:.0f} ({self.seeds} seeds {100 * self.low:.0f}–{100 * self.high:.0f})"
-        return body if paper is None else f"{body} · paper {paper:g}"
-
-
-def cell(episodes: pd.DataFrame, method: str, env_id: str) -> Cell | None:
-    """The cell of ``method`` on ``env_id`` (``None`` without episodes)."""
-    rows = episodes[(episodes["method"] == method) & (episodes["env_id"] == env_id)]
-    if rows.empty:
-        return None
-    per_seed = rows.groupby("training_seed").agg(
-        n=("success", "size"), successes=("success", "sum"), lap_time=("lap_time", "mean")
-    )
-    rates = per_seed["successes"] / per_seed["n"]
-    if len(per_seed) == 1:
-        low, high = wilson_interval(int(per_seed["successes"].iloc[0]), int(per_seed["n"].iloc[0]))
-    else:
-        low, high = float(rates.min()), float(rates.max())
-    laps = per_seed["lap_time"].dropna()
-    return Cell(
-        n=int(per_seed["n"].min()),
-        seeds=len(per_seed),
-        success_rate=float(rates.mean()),
-        low=low,
-        high=high,
-        lap_time=float(laps.mean()) if len(laps) else float("nan"),
-    )
 
 
 def lap_time_references(root: str | Path = ".") -> dict[str, dict[str, float]]:
@@ -270,262 +237,6 @@ def table_iv(episodes: pd.DataFrame, method: str = "vision-ppo") -> tuple[pd.Dat
     return pd.DataFrame.from_dict(display, orient="index"), rows
 
 
-#: The two Table IV figures: file stem, the variants' prefix, their x values and the x axis label.
-TABLE_IV_FIGURES: dict[str, tuple[list[str], list[float], str]] = {
-    "table_iv_density": ([f"Density{d}" for d in DENSITIES], [float(d) for d in DENSITIES], "obstacles per 2 gates"),
-    "table_iv_gate_shift": (
-        [f"GateShift{s}" for s in GATE_SHIFTS], [float(s) for s in GATE_SHIFTS], "gate shift ±[m]"
-    ),
-}
-FIGURE_FORMATS = ("png", "pdf")
-
-
-def table_iv_figure(
-    episodes: pd.DataFrame, factor: str, method: str = "vision-ppo", reference: str = "planner-fast",
-    title: str | None = None,
-):  # fmt: skip
-    """Table IV as a figure (``factor``: a :data:`TABLE_IV_FIGURES` key), one panel per track: ``method``'s success
-    rate per training seed with its 95 % Wilson interval, the mean over seeds with a band for their range, the
-    paper's numbers as markers and ``reference`` (the privileged planner, same env version) as a dashed line."""
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only; never needs a display
-    import matplotlib.pyplot as plt
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
-
-    names, xs, xlabel = TABLE_IV_FIGURES[factor]
-    step = min(np.diff(xs)) if len(xs) > 1 else 1.0
-    fig, axes = plt.subplots(1, len(TRACK_ORDER), figsize=(11, 3.6), sharey=True, squeeze=False)
-    seeds_seen, n_seen, ref_n = set(), set(), set()
-    for ax, track in zip(axes[0], TRACK_ORDER, strict=True):
-        rows = episodes[(episodes["method"] == method) & (episodes["track"] == track) & episodes["variant"].isin(names)]
-        seeds = sorted(rows["training_seed"].unique())  # those flown on these ids (not only on the main id)
-        seeds_seen.add(len(seeds))
-        rates = pd.DataFrame(index=names, columns=seeds, dtype=float)
-        for j, seed in enumerate(seeds):
-            offset = (j - (len(seeds) - 1) / 2) * 0.08 * step
-            for x, variant in zip(xs, names, strict=True):
-                mine = rows[(rows["training_seed"] == seed) & (rows["variant"] == variant)]
-                if mine.empty:
-                    continue
-                k, n = int(mine["success"].sum()), len(mine)
-                n_seen.add(n)
-                low, high = wilson_interval(k, n)
-                rates.loc[variant, seed] = k / n
-                ax.errorbar(x + offset, 100 * k / n, yerr=[[100 * (k / n - low)], [100 * (high - k / n)]],
-                            fmt="o", markersize=3, color="tab:blue", alpha=0.55, capsize=2, linewidth=0.8)  # fmt: skip
-        if len(seeds):
-            mean, low, high = rates.mean(axis=1), rates.min(axis=1), rates.max(axis=1)
-            ax.plot(xs, 100 * mean, color="tab:blue", linewidth=1.8)
-            if len(seeds) > 1:
-                ax.fill_between(xs, 100 * low, 100 * high, color="tab:blue", alpha=0.15, linewidth=0)
-        else:
-            ax.text(0.5, 0.5, f"no {method} run", transform=ax.transAxes, ha="center", color="0.4", style="italic")
-        ref = episodes[(episodes["method"] == reference) & (episodes["track"] == track)]
-        ref_rates = [ref.loc[ref["variant"] == v, "success"] for v in names]
-        ref_n.update(len(r) for r in ref_rates if len(r))
-        ax.plot(xs, [100 * r.mean() if len(r) else np.nan for r in ref_rates], "--", color="0.35", linewidth=1.2,
-                marker=".", zorder=1)  # fmt: skip
-        ax.plot(xs, [PAPER_VARIANTS[v][track] for v in names], "x", color="tab:red", markersize=8,
-                markeredgewidth=1.8, zorder=4)  # fmt: skip
-        ax.set_title(f"{TRACK_NAMES[track]} ({len(seeds)} seed{'s' if len(seeds) != 1 else ''})", fontsize=10)
-        ax.set_xticks(xs)
-        ax.set_xlabel(xlabel)
-        ax.set_ylim(-4, 105)
-        ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel("success rate [%]")
-    per_cell = "/".join(str(n) for n in sorted(n_seen)) or "–"
-    ref_cell = "/".join(str(n) for n in sorted(ref_n)) or "–"
-    handles = [
-        Line2D([], [], color="tab:blue", marker="o", markersize=3, alpha=0.55, linestyle="",
-               label=f"{method}: one training seed, 95 % Wilson interval ({per_cell} episodes)"),
-        Line2D([], [], color="tab:blue", linewidth=1.8, label=f"{method}: mean over training seeds"),
-        Patch(color="tab:blue", alpha=0.15, label=f"{method}: range over training seeds"),
-        Line2D([], [], color="tab:red", marker="x", linestyle="", markeredgewidth=1.8,
-               label="paper (Sun et al., Table IV; 10 trials)"),
-        Line2D([], [], color="0.35", linestyle="--", marker=".",
-               label=f"{reference} (privileged reference; {ref_cell} episodes)"),
-    ]  # fmt: skip
-    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout(rect=(0, 0.14, 1, 1))
-    return fig
-
-
-def write_table_iv_figures(
-    episodes: pd.DataFrame, out: Path, env_version: int | None, campaign: Path = CAMPAIGN
-) -> list[Path]:
-    """Both Table IV figures of ``vision-ppo`` under ``out/figures`` as PNG and PDF (none without its episodes)."""
-    import matplotlib.pyplot as plt
-
-    if not (episodes["method"] == "vision-ppo").any():
-        return []
-    written = []
-    (out / "figures").mkdir(parents=True, exist_ok=True)
-    for stem in TABLE_IV_FIGURES:
-        what = "obstacle density" if stem.endswith("density") else "gate shift"
-        title = (f"vision-ppo's success rate against {what} ({Path(campaign).name}, "
-                 f"env version {env_version}; references on the same env version)")  # fmt: skip
-        fig = table_iv_figure(episodes, stem, title=title)
-        for fmt in FIGURE_FORMATS:
-            path = out / "figures" / f"{stem}.{fmt}"
-            metadata = {"Software": None} if fmt == "png" else {"Creator": None, "Producer": None, "CreationDate": None}
-            fig.savefig(path, dpi=200, bbox_inches="tight", pad_inches=0.05, metadata=metadata)
-            written.append(path)
-        plt.close(fig)
-    return written
-
-
-# ----------------------------------------------------------------------------------------------------- claims
-@dataclass(frozen=True)
-class Claim:
-    """One of the paper's claims as tested: both sides' numbers, the test, its p-value and the verdict."""
-
-    claim: str
-    evidence: str
-    test: str
-    p: float | None  # raw p-value (None: not a test, e.g. "one-step fails")
-    verdict: str = ""
-    p_holm: float | None = None
-
-
-def _seed_episodes(episodes: pd.DataFrame, method: str, env_id: str, training_seed: int) -> pd.DataFrame:
-    rows = episodes[(episodes["method"] == method) & (episodes["env_id"] == env_id)]
-    return rows[rows["training_seed"] == training_seed]
-
-
-def difference_claim(episodes: pd.DataFrame, better: str, worse: str) -> Claim:
-    """``better`` > ``worse`` on every track's main id: directions per track and seed pair, pooled McNemar p."""
-    directions, evidence, only_better, only_worse = [], [], 0, 0
-    for track in TRACK_ORDER:
-        env_id = env_id_of(track)
-        ours, theirs = cell(episodes, better, env_id), cell(episodes, worse, env_id)
-        if ours is None or theirs is None:
-            return Claim(f"{better} > {worse}", f"{track}: missing runs", "exact McNemar, pooled", None)
-        evidence.append(f"{track} {100 * ours.success_rate:.0f} vs {100 * theirs.success_rate:.0f}")
-        seeds_a = sorted(set(episodes.loc[episodes["method"] == better, "training_seed"]))
-        seeds_b = sorted(set(episodes.loc[episodes["method"] == worse, "training_seed"]))
-        for a in seeds_a:
-            for b in seeds_b:
-                left, right = _seed_episodes(episodes, better, env_id, a), _seed_episodes(episodes, worse, env_id, b)
-                if len(left) and len(right):
-                    pairs = left.merge(right, on=["env_id", "seed"], suffixes=("_a", "_b"))
-                    directions.append(np.sign(pairs["success_a"].mean() - pairs["success_b"].mean()))
-        seed0_a, seed0_b = min(seeds_a), min(seeds_b)  # the pooled test pairs one run per side: the first seed
-        _, a_only, b_only, _ = paired_outcomes(
-            _seed_episodes(episodes, better, env_id, seed0_a), _seed_episodes(episodes, worse, env_id, seed0_b)
-        )
-        only_better, only_worse = only_better + a_only, only_worse + b_only
-    from scipy.stats import binomtest
-
-    p = binomtest(only_worse, only_better + only_worse).pvalue if only_better + only_worse else 1.0
-    signs = set(directions)
-    direction = 1 if signs == {1.0} else -1 if signs == {-1.0} else 0
-    evidence.append(f"discordant scenes {only_better} vs {only_worse}")
-    return Claim(f"{better} > {worse}", "; ".join(evidence), "exact McNemar, pooled over tracks", p,
-                 verdict=str(direction))  # fmt: skip
-
-
-def one_step_fails(episodes: pd.DataFrame, method: str = "vision-one-step") -> Claim:
-    """``method`` fails on every main id: success rate < 10 % and its Wilson upper bound < 20 % on each track."""
-    evidence, holds = [], True
-    for track in TRACK_ORDER:
-        rows = episodes[(episodes["method"] == method) & (episodes["env_id"] == env_id_of(track))]
-        if rows.empty:
-            return Claim(f"{method} fails", f"{track}: missing run", "success < 10 %, Wilson upper < 20 %", None,
-                         verdict="not tested (missing runs)")  # fmt: skip
-        k, n = int(rows["success"].sum()), len(rows)
-        high = wilson_interval(k, n)[1]
-        evidence.append(f"{track} {k}/{n} (upper {100 * high:.0f} %)")
-        holds = holds and k / n < 0.10 and high < 0.20
-    return Claim(f"{method} fails", "; ".join(evidence), "success < 10 % and Wilson upper < 20 % on every track",
-                 None, verdict="holds" if holds else "does not hold")  # fmt: skip
-
-
-def trend_claim(episodes: pd.DataFrame, kind: str, method: str = "vision-ppo") -> Claim:
-    """``method``'s success falls with obstacle density (``kind="density"``) or gate shift (``"gates"``)."""
-    if kind == "density":
-        levels = [(float(d), f"Density{d}") for d in DENSITIES]
-    else:
-        levels = [(float(s), f"GateShift{s}") for s in GATE_SHIFTS]
-    what = "density 2-5" if kind == "density" else "gate shift 0.3-1.0 m"
-    strata, evidence = [], []
-    for track in TRACK_ORDER:
-        scores, successes, trials, rates = [], [], [], []
-        for score, variant in levels:
-            rows = episodes[(episodes["method"] == method) & (episodes["env_id"] == env_id_of(track, variant))]
-            rows = rows[rows["training_seed"] == rows["training_seed"].min()] if len(rows) else rows
-            if rows.empty:
-                return Claim(f"{method}: success falls with {what}", f"{track} {variant}: missing",
-                             "stratified Cochran-Armitage", None)  # fmt: skip
-            scores.append(score)
-            successes.append(int(rows["success"].sum()))
-            trials.append(len(rows))
-            rates.append(f"{100 * successes[-1] / trials[-1]:.0f}")
-        strata.append((scores, successes, trials))
-        evidence.append(f"{track} {'/'.join(rates)}")
-    z, p_down, p_up = trend_test(strata)
-    claim = Claim(f"{method}: success falls with {what}", "; ".join(evidence) + f"; z = {z:.2f}",
-                  "Cochran-Armitage trend, stratified by track, one-sided", min(p_down, p_up),
-                  verdict="1" if p_down <= p_up else "-1")  # fmt: skip
-    return claim
-
-
-def judge_claims(episodes: pd.DataFrame) -> list[Claim]:
-    """The paper's claims with their verdicts under the rule committed in ``baselines/sweeps/campaign-4m.yaml``:
-    Holm over every tested claim at level 0.05; a difference needs the same direction on every track and seed pair;
-    a trend the one-sided stratified Cochran-Armitage test."""
-    tested = [
-        difference_claim(episodes, "vision-ppo", "state-ppo"),
-        difference_claim(episodes, "vision-ppo", "vision-com"),
-        difference_claim(episodes, "vision-ppo", "vision-no-gru"),
-        difference_claim(episodes, "vision-ppo", "vision-no-avoid"),
-        difference_claim(episodes, "vision-ppo", "vision-one-step"),
-        trend_claim(episodes, "density"),
-        trend_claim(episodes, "gates"),
-    ]
-    known = [claim for claim in tested if claim.p is not None]
-    adjusted = dict(zip([id(c) for c in known], holm_adjust([c.p for c in known]), strict=True))
-    judged = []
-    for claim in tested:
-        if claim.p is None:
-            judged.append(Claim(claim.claim, claim.evidence, claim.test, None, "not tested (missing runs)"))
-            continue
-        p_holm = adjusted[id(claim)]
-        direction = int(claim.verdict)
-        if p_holm < ALPHA and direction == 1:
-            verdict = "holds"
-        elif p_holm < ALPHA and direction == -1:
-            verdict = "opposite"
-        else:
-            verdict = "does not hold at this budget"
-        judged.append(Claim(claim.claim, claim.evidence, claim.test, claim.p, verdict, p_holm))
-    return judged + [one_step_fails(episodes)]
-
-
-def claims_markdown(claims: list[Claim], budget_note: str) -> str:
-    """``claims.md``: one line per claim with both numbers, the test, raw and Holm p, and the verdict."""
-    lines = [
-        "# The paper's claims, tested at 4 M steps per run",
-        "",
-        "Generated by `racebench paper-tables`; the decision rule was committed in `baselines/sweeps/campaign-4m.yaml`"
-        " before the first run. Success on each track's main id (100 evaluation scenes per run) or on the density and"
-        " gate-shift ids (50 each); Holm's correction over every tested claim, level 0.05.",
-        "",
-        "| claim | evidence (success %) | test | p | p (Holm) | verdict |",
-        "| --- | --- | --- | --- | --- | --- |",
-    ]
-    for c in claims:
-        p = "–" if c.p is None else f"{c.p:.2g}"
-        holm = "–" if c.p_holm is None else f"{c.p_holm:.2g}"
-        lines.append(f"| {c.claim} | {c.evidence} | {c.test} | {p} | {holm} | **{c.verdict}** |")
-    return "\n".join(lines + ["", budget_note, ""])
-
-
-#: The window of a run's final training success: one rollout's rate is a handful of episodes (a run's last row
-#: can read 0 % between rows of 100 %), so the rate is pooled over the episodes of its last 200k steps.
 FINAL_WINDOW_STEPS = 200_000
 
 
@@ -564,8 +275,14 @@ def budget_note(root: Path, campaign: Path = CAMPAIGN) -> str:
 
 # ------------------------------------------------------------------------------------------------ validation curve
 # ------------------------------------------------------------------------------------------------------- output
-def caption(which: str, episodes: pd.DataFrame) -> str:
-    """A table's caption: what it shows, the budget and the episodes per cell."""
+def provenance(episodes: pd.DataFrame, campaign: str | Path = CAMPAIGN) -> str:
+    """Which campaign and env version a report's numbers are of, as one sentence."""
+    version = episodes.attrs.get("env_version")
+    return f"Campaign `{Path(campaign).name}`, env version {version if version is not None else '–'}."
+
+
+def caption(which: str, episodes: pd.DataFrame, campaign: str | Path = CAMPAIGN) -> str:
+    """A table's caption: what it shows, the campaign and env version, the budget and the episodes per cell."""
     what = {
         "II": "Table II: lap time (mean of successful laps) and success rate per track, each policy on its own track",
         "III": "Table III: success rate of vision-ppo and its ablations per track",
@@ -581,7 +298,8 @@ def caption(which: str, episodes: pd.DataFrame) -> str:
         else ""
     )
     return (
-        f"{what}. Trained configs: {BUDGET_STEPS / 1e6:.0f} M steps per run ({share:.0f} % of the paper's 100 M); "
+        f"{what}. {provenance(episodes, campaign)} Trained configs: {BUDGET_STEPS / 1e6:.0f} M steps per run "
+        f"({share:.0f} % of the paper's 100 M); "
         f"{n}; SR [95 % Wilson] for one training seed, the mean (range over seeds) for several; "
         f"'· paper' the paper's number (10 trials).{lap_references}"
     )
@@ -596,7 +314,9 @@ METHOD_NOTES: dict[str, tuple[str, str]] = {  # budget per track, the command th
 }
 
 
-def at_a_glance(episodes: pd.DataFrame, references: dict[str, dict[str, float]] | None = None) -> str:
+def at_a_glance(
+    episodes: pd.DataFrame, references: dict[str, dict[str, float]] | None = None, campaign: str | Path = CAMPAIGN
+) -> str:
     """The README's results block: the paper's method and its state-based baseline as trained here, each below the
     paper's numbers, the best racebench method (highest mean own-track success of the teacher-student rows) and the
     privileged reference, per track; then the reference lap times (:func:`lap_time_references`), when given."""
@@ -666,8 +386,8 @@ def at_a_glance(episodes: pd.DataFrame, references: dict[str, dict[str, float]] 
         "time of the successful laps; one policy per track. '–' marks a run of the campaign not yet committed. "
         "The last two rows are lap times, not policies: the lower bound below which record validation refuses a lap, "
         "and planner-fast's racing line flown at the airframe's full thrust (the fastest that line allows). "
-        "Generated by `racebench paper-tables` (no training); Tables II–IV, the paper's claims tested and the "
-        "learning curves: [`results/`](results/README.md).",
+        f"{provenance(episodes, campaign)} Generated by `racebench paper-tables` (no training); Tables II–IV, the "
+        "paper's claims tested and the learning curves: [`results/`](results/README.md).",
     ]
     return "\n".join(lines) + "\n"
 
@@ -702,7 +422,7 @@ def write_report(
     for which, build in (("II", table_ii), ("III", table_iii), ("IV", table_iv)):
         frame, rows = build(episodes, references) if which == "II" else build(episodes)
         stem = out / f"table_{which.lower()}"
-        text = caption(which, episodes)
+        text = caption(which, episodes, campaign)
         table = pd.DataFrame(rows)
         if which == "II":  # its reference rows have no counts: keep the counts integers
             table[["seeds", "n"]] = table[["seeds", "n"]].astype("Int64")
@@ -712,7 +432,7 @@ def write_report(
             atomic_write(stem.with_suffix(suffix), content)
             written.append(stem.with_suffix(suffix))
     atomic_write(out / "claims.md", claims_markdown(judge_claims(episodes), budget_note(root, campaign)))
-    block = at_a_glance(episodes, references)
+    block = at_a_glance(episodes, references, campaign)
     atomic_write(out / "at_a_glance.md", block)
     written += [out / "claims.md", out / "at_a_glance.md"]
     if learning_curves(root, out, campaign) is not None:

@@ -236,3 +236,26 @@ def make_table(summary: pd.DataFrame, which: str, fmt: str = "md", ci: bool = Tr
                     " the mean of the seeds' mean laps.")  # fmt: skip
     caption += " Bold: a non-privileged agent whose 95% interval lies entirely beyond every other's."
     return render(frame, bold, fmt, caption)
+
+
+def lap_text(seconds: float) -> str:
+    """A mean lap time as printed: seconds to 0.01 s, or "–" without a successful lap (NaN)."""
+    return "–" if seconds != seconds else f"{seconds:.2f}"  # NaN != NaN
+
+
+def compare_header(pairs: pd.DataFrame) -> pd.DataFrame:
+    """``racebench compare``'s per-env-id table of each side on the paired episodes (see its printed legend)."""
+    table = {"env_id": pairs["env_id"], "pairs": pairs["pairs"]}
+    for side in "ab":
+        table[f"{side} SR [%]"] = [
+            f"{k}/{n} {100 * k / n:.0f} [{100 * low:.0f}–{100 * high:.0f}]" if n else "–"
+            for k, n, low, high in zip(
+                pairs[f"successes_{side}"],
+                pairs["pairs"],
+                pairs[f"sr_ci_low_{side}"],
+                pairs[f"sr_ci_high_{side}"],
+                strict=True,
+            )  # fmt: skip
+        ]
+        table[f"{side} lap [s]"] = [lap_text(float(v)) for v in pairs[f"lap_time_mean_{side}"]]
+    return pd.DataFrame(table)
