@@ -295,3 +295,15 @@ def test_add_refuses_records_git_ignores(tmp_path: Path, monkeypatch: pytest.Mon
     assert not (board / "ignored").exists()
     tracked = write_records(tmp_path / "results" / "hover", "hover", ENV, 0, 3)  # the same records, carriable
     assert cli.main([*argv[:-1], str(tracked)]) == 0
+
+
+def test_an_onnx_policy_is_named_once(board: Path) -> None:
+    from racebench.leaderboard.entries import Entry, Policy
+
+    entries = {e.name: e for e in load_entries(board)}
+    assert entries["onnx-public-only"].policies["all"].onnx == entries["onnx-public-only"].policies["all"].policy
+    assert entries["onnx-public-only"].kind == "onnx"  # was "onnx + onnx": the policy is its own export
+    assert entries["planner"].kind == "builtin"
+    zips = {t: Policy(t, f"{t}.zip", "0" * 64, [], onnx=f"{t}.onnx") for t in ("S", "Circle", "J")}
+    assert Entry({}, board, board, zips).kind == "sb3 + onnx"
+    assert Entry({}, board, board, {**zips, "J": Policy("J", "J.onnx", "0" * 64, [], onnx="J.onnx")}).kind == "onnx/sb3"

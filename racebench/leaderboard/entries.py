@@ -200,9 +200,11 @@ class Entry:
 
     @property
     def kind(self) -> str:
-        """The kinds of its policies' files, e.g. ``sb3 + onnx`` (an ONNX export beside each)."""
+        """The kinds of its policies' files, e.g. ``sb3 + onnx`` (an ONNX export beside each); ``onnx`` once where
+        the policy is the ONNX file itself."""
         kinds = sorted({p.kind for p in self.policies.values()})
-        return "/".join(kinds) + (" + onnx" if all(p.onnx for p in self.policies.values()) else "")
+        exported = all(p.onnx for p in self.policies.values()) and "onnx" not in kinds
+        return "/".join(kinds) + (" + onnx" if exported else "")
 
     def policy_for(self, track: str) -> Policy | None:
         """The policy it flies on ``track`` (its own or the all-track one), None without one."""
