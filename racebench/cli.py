@@ -1,4 +1,4 @@
-"""``racebench`` command line: list environments, fly, evaluate, tables, figures, scene export."""
+"""The ``racebench`` command line: one small function per command (the parser: :mod:`racebench.cli_parser`)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import racebench
-from racebench.cli_parser import build_parser, parser_of
+from racebench.cli_parser import build_parser, parser_of, unrecognized
 from racebench.evaluation.fly import fly, make_env  # noqa: F401 (racebench.cli.fly, as before)
 from racebench.utils.files import sha256_file
 
@@ -32,7 +32,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     words = list(sys.argv[1:] if argv is None else argv)
     args, unknown = parser.parse_known_args(words)
     if unknown:
-        parser_of(parser, args, words, unknown).error(f"unrecognized arguments: {' '.join(unknown)}")
+        reporter = parser_of(parser, args, words, unknown)
+        reporter.error(unrecognized(reporter, unknown))
     _configure_logging(args.quiet, args.verbose)
     log.debug(f"racebench {racebench.__version__} from {Path(racebench.__file__).parent}, env version "
               f"{racebench.ENV_VERSION}, arguments {vars(args)}")  # fmt: skip

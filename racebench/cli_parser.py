@@ -6,12 +6,68 @@
 from __future__ import annotations
 
 import argparse
+import difflib
+import re
+import sys
+from collections.abc import Sequence
 
 import racebench
 from racebench.agents.base import BUILTIN_AGENTS
 
 #: The parser's description: what ``racebench --help`` says first.
-DESCRIPTION = "``racebench`` command line: list environments, fly, evaluate, tables, figures, scene export."
+DESCRIPTION = (
+    "racebench: a benchmark for vision-based quadrotor racing. List the environments, fly an agent, train and sweep "
+    "baselines, evaluate and compare agents, make the paper's tables and figures, and add or verify leaderboard "
+    "entries. `racebench COMMAND --help` describes each command."
+)
+_NUMBER = re.compile(r"^-\d+$|^-\d*\.\d+$")
+
+
+class CommandParser(argparse.ArgumentParser):
+    """An argument parser that names a misspelled option (and the closest known one), even where a missing
+    required option would otherwise be the only error (``evaluate --agnet hover``)."""
+
+    def parse_known_args(self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None):  # type: ignore[override]
+        self._words = list(sys.argv[1:] if args is None else args)  # a sub-command's parser: the words after it
+        return super().parse_known_args(args, namespace)
+
+    def error(self, message: str):  # type: ignore[override]
+        if message.startswith("the following arguments are required"):
+            unknown = [w for w in getattr(self, "_words", []) if self.unknown_option(w)]
+            if unknown:
+                message = unrecognized(self, unknown)
+        super().error(message)
+
+    def unknown_option(self, word: str) -> bool:
+        """Whether ``word`` looks like an option (not a negative number) that this parser does not know."""
+        if not word.startswith("-") or word == "-" or word == "--" or _NUMBER.match(word):
+            return False
+        name = word.split("=", 1)[0]
+        return name not in self._option_string_actions and not self._get_option_tuples(name)
+
+
+def unrecognized(parser: argparse.ArgumentParser, unknown: Sequence[str]) -> str:
+    """argparse's "unrecognized arguments" message, with the known option closest to each misspelled one."""
+    known = [s for s in parser._option_string_actions if s.startswith("--")]
+    close = {}
+    for word in unknown:
+        name = word.split("=", 1)[0]
+        if name.startswith("--") and (match := difflib.get_close_matches(name, known, n=1, cutoff=0.6)):
+            close[name] = match[0]
+    hints = [f"{known} (for {name})" for name, known in close.items()] if len(close) > 1 else list(close.values())
+    hint = f" (did you mean {', '.join(hints)}?)" if hints else ""
+    return f"unrecognized arguments: {' '.join(unknown)}{hint}"
+
+
+def describe_commands(parser: argparse.ArgumentParser) -> None:
+    """Give each sub-command without a description its one-line help as one (``racebench compare --help``)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {choice.dest: choice.help for choice in action._choices_actions}
+            for name, sub in action.choices.items():
+                if sub.description is None and helps.get(name):
+                    sub.description = helps[name][0].upper() + helps[name][1:] + "."
+                describe_commands(sub)
 # From the registry of built-ins, so a new built-in agent is listed without anyone remembering to.
 AGENT_HELP = f"agent spec: {' | '.join(BUILTIN_AGENTS)} | model.zip | policy.onnx | module:Class | file.py:Class"
 AGENT_KWARGS_HELP = "JSON object of keyword arguments for a module:Class agent's constructor, e.g. '{\"k\": 1}'"
@@ -25,7 +81,7 @@ NO_VECNORMALIZE_HELP = "fly an SB3 .zip without the VecNormalize statistics foun
 def build_parser() -> argparse.ArgumentParser:
     """The ``racebench`` argument parser (every option has help text; docs/commands.md's command table is
     checked against it by a test)."""
-    parser = argparse.ArgumentParser(prog="racebench", description=DESCRIPTION)
+    parser = CommandParser(prog="racebench", description=DESCRIPTION)
     parser.add_argument("--version", action="version", version=f"racebench {racebench.__version__}")
     verbosity = parser.add_mutually_exclusive_group()
     verbosity.add_argument("-q", "--quiet", action="store_true", help="only warnings, errors and the results")
@@ -322,6 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
     from racebench.leaderboard.command import add_parser as add_leaderboard_parser
 
     add_leaderboard_parser(sub)
+    describe_commands(parser)
     return parser
 
 

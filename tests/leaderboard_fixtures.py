@@ -13,7 +13,7 @@ from onnx import TensorProto, helper
 from racebench.evaluation import Evaluator
 from racebench.evaluation.records import RECORDS_FILE, compact_folder, record_line, seal
 from racebench.evaluation.seeds import salt_sha256
-from racebench.leaderboard.entries import add_entry
+from racebench.leaderboard.submit import add_entry
 from racebench.sim.quadrotor import QuadrotorParams
 
 ENV = "RaceObs-S-Level1-v0"  # no obstacles: hover and the planner run quickly and deterministically

@@ -245,7 +245,23 @@ def test_a_misspelled_option_is_reported_by_its_subcommand(capsys: pytest.Captur
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert err.startswith("usage: racebench evaluate ")
-    assert err.splitlines()[-1] == "racebench evaluate: error: unrecognized arguments: --epsiodes 3"
+    assert err.splitlines()[-1] == (
+        "racebench evaluate: error: unrecognized arguments: --epsiodes 3 (did you mean --episodes?)"
+    )
+    with pytest.raises(SystemExit):  # named, though the required --agent is missing too
+        cli.main(["evaluate", "--agnet", "hover"])
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        "racebench evaluate: error: unrecognized arguments: --agnet (did you mean --agent?)"
+    )
+    with pytest.raises(SystemExit):
+        cli.main(["fly", "--agnet", "hover", "--sede=3"])
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        "racebench fly: error: unrecognized arguments: --agnet hover --sede=3 (did you mean --agent (for --agnet), "
+        "--seed (for --sede)?)"
+    )
+    with pytest.raises(SystemExit):  # a missing required option alone: argparse's own message
+        cli.main(["evaluate", "--episodes", "3"])
+    assert capsys.readouterr().err.splitlines()[-1].endswith("error: the following arguments are required: --agent")
     with pytest.raises(SystemExit):
         cli.main(["leaderboard", "verify", "--bogus"])  # nested: the innermost command's usage
     assert capsys.readouterr().err.startswith("usage: racebench leaderboard verify ")
@@ -366,3 +382,19 @@ def test_export_commands_refuse_a_pickled_payload(command: str, tmp_path: Path) 
     message = str(exc.value.code)
     assert message.startswith(f"racebench {command}: agent") and "--trust-code" in message and "\n" not in message
     assert not marker.exists()
+
+
+def test_the_help_names_every_command_and_each_command_has_a_description(capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit):
+        cli.main(["--help"])
+    out = capsys.readouterr().out
+    head = out.split("positional arguments")[0]
+    assert "``" not in out
+    for command in ("fly", "evaluate", "train", "sweep", "compare", "leaderboard"):
+        assert command in head, command  # the opening lines name it, not only the command list
+    parser = cli.build_parser()
+    for path, sub in commands(parser).items():
+        assert (sub.description or "").strip(), f"racebench {' '.join(path)} --help has no description"
+    with pytest.raises(SystemExit):
+        cli.main(["compare", "--help"])
+    assert "exact McNemar test" in capsys.readouterr().out.split("positional arguments")[0]

@@ -165,6 +165,19 @@ def test_resume_skips_finished_episodes(tmp_path: Path) -> None:
     assert len(pd.read_csv(out / "episodes.csv")) == 3 and len(after) == 3
 
 
+def test_a_complete_rerun_prints_no_empty_progress_bar(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from racebench import cli
+
+    argv = ["evaluate", "--agent", "hover", "--envs", "RaceObs-S-Level1-v0", "--episodes", "1", "--out",
+            str(tmp_path / "eval")]  # fmt: skip
+    assert cli.main(argv) == 0
+    assert "1/1" in capsys.readouterr().err  # the first run's bar
+    assert cli.main(argv) == 0
+    out, err = capsys.readouterr()
+    assert "0ep" not in err and "ep/s" not in err and "it/s" not in err  # was "hover: 0ep [00:00, ?ep/s]" twice
+    assert "1/1 episodes already done" in out and ", 0 to run" in out  # the one line that says so
+
+
 def _shard_lines(out: Path) -> list[bytes]:
     return [line for shard in out.glob("records-*.jsonl") for line in shard.read_bytes().splitlines(keepends=True)]
 

@@ -165,3 +165,11 @@ def test_check_env_compares_the_actions_on_the_checkpoints_own_flight(tmp_path: 
     with pytest.raises(SystemExit, match=r"--check-steps must be at least 1, got 0"):
         cli.main([*argv[:-1], "0"])
     assert not out.exists()
+
+
+def test_the_exporter_choice_is_explained() -> None:
+    """The export keeps TorchScript's exporter (dynamo=False); the docs say why the supported one is not used."""
+    root = Path(__file__).parents[1]
+    assert "dynamo=False" in (root / "racebench" / "agents" / "export.py").read_text()
+    text = (root / "docs" / "evaluation.md").read_text()
+    assert "Why the ONNX export keeps the TorchScript exporter" in text and "dynamo=True" in text

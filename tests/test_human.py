@@ -85,3 +85,25 @@ def test_human_mode_without_a_display_is_a_clear_error(monkeypatch) -> None:
     env = gym.make("RaceObs-S-v0")
     assert env.unwrapped.metadata["render_modes"] == ["rgb_array", "human"]
     env.close()
+
+
+def test_the_render_modes_agree_without_a_display(monkeypatch) -> None:
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the DISPLAY check is Linux's")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    env = gym.make("RaceObs-S-v0")
+    offered = env.unwrapped.metadata["render_modes"]
+    env.close()
+    for mode in ("depth_array", "rgbarray"):
+        with pytest.raises(ValueError) as raised:
+            gym.make("RaceObs-S-v0", render_mode=mode)
+        message = str(raised.value)
+        assert f"one of {offered} (this machine's), got {mode!r}" in message  # the list metadata gives
+        assert "'human' (PyBullet's GUI window) needs a display and DISPLAY is not set here" in message
+    with pytest.raises(ValueError, match=r"'depth_array' is not a render mode: the depth image is the observation"):
+        gym.make("RaceObs-S-v0", render_mode="depth_array")
+    monkeypatch.setenv("DISPLAY", ":99")  # with a display: both listed, nothing to explain
+    with pytest.raises(ValueError) as raised:
+        gym.make("RaceObs-S-v0", render_mode="rgbarray")
+    expected = "render_mode must be None or one of ['rgb_array', 'human'] (this machine's), got 'rgbarray'"
+    assert str(raised.value) == expected

@@ -108,7 +108,7 @@ def test_add_validates_the_policy_and_refuses_duplicates(board: Path, tmp_path: 
     with pytest.raises(EntryError, match="already exists"):
         add(board, str(onnx_file), "ONNX-Verified", [root / "results" / "onnx-public"])  # case-insensitive
     with pytest.raises(EntryError, match="description must be one line"):
-        from racebench.leaderboard.entries import add_entry
+        from racebench.leaderboard.submit import add_entry
 
         add_entry(
             board, str(onnx_file), {**meta("x"), "description": "two\nlines"}, [str(root / "results" / "onnx-public")]
@@ -119,7 +119,7 @@ def test_add_validates_the_policy_and_refuses_duplicates(board: Path, tmp_path: 
     with pytest.raises(EntryError, match="record of another policy"):
         add(board, str(onnx_file), "stolen", [root / "results" / "planner"])  # someone else's results
     with pytest.raises(EntryError, match="obs_mode"):
-        from racebench.leaderboard.entries import add_entry
+        from racebench.leaderboard.submit import add_entry
 
         add_entry(board, str(onnx_file), {**meta("bad"), "obs_mode": "lidar"}, [str(root / "results" / "onnx-public")])
     assert not (board / "stolen").exists() and not (board / "bad" / "entry.yaml").exists()
@@ -228,3 +228,82 @@ def test_records_of_uncommitted_code_are_refused(tmp_path: Path, monkeypatch: py
     assert not (board / "hover").exists()
     rewrite_records(folder, lambda r: record if r["seed"] == record["seed"] else r)  # re-evaluated from a clean commit
     assert cli.main(argv) == 0 and load_entry(board / "hover").records
+
+
+def test_cli_add_shows_progress_and_the_result_numbers(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
+    board = make_repo(tmp_path)
+    meta_file = tmp_path / "meta.yaml"
+    meta_file.write_text(yaml.safe_dump(meta("hover-2")))
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["leaderboard", "add", "--policy", "hover", "--meta", str(meta_file), "--evaluate", "1"]) == 0
+    out, err = capsys.readouterr()
+    assert "hover-2-all: 100%" in err and "3/3" in err  # the progress bar, as `racebench evaluate` shows it
+    for env_id in MAIN_IDS:  # hover passes no gate: 0 of 1, no lap
+        numbers = "0/1 successes (0%, 95 % CI 0%–79%), mean lap – (no successful lap)"
+        assert f"hover-2 all {env_id} [public]: {numbers}" in out
+    assert "budget" not in err  # a built-in was not trained: nothing to warn about
+    assert load_entry(board / "hover-2").policies["all"].budget_source == "none (not trained)"
+
+
+def test_add_warns_of_a_missing_budget_and_meta_sets_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
+    board = make_repo(tmp_path)
+    onnx_file = write_hover_onnx(tmp_path / "policies" / "hover.onnx")
+    folder = evaluate(str(onnx_file), tmp_path / "results" / "onnx-public", 1)
+    meta_file = tmp_path / "meta.yaml"
+    meta_file.write_text(yaml.safe_dump(meta("no-budget")))
+    monkeypatch.chdir(tmp_path)
+    argv = ["leaderboard", "add", "--policy", str(onnx_file), "--meta", str(meta_file), "--records", str(folder)]
+    assert cli.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "no-budget: the all policy's training budget is unknown" in err
+    assert "set it in --meta: policies: {all: {steps: N, wall_clock_s: SECONDS}}" in err
+    assert load_entry(board / "no-budget").policies["all"].budget_source == "unknown"
+    meta_file.write_text(yaml.safe_dump({**meta("budget"), "policies": {"all": {"steps": 1000, "wall_clock_s": 9.5}}}))
+    assert cli.main(argv) == 0
+    assert "budget" not in capsys.readouterr().err
+    policy = load_entry(board / "budget").policies["all"]
+    assert (policy.steps, policy.wall_clock_s, policy.budget_source) == (1000, 9.5, "entry.yaml")
+    meta_file.write_text(yaml.safe_dump({**meta("bad-budget"), "policies": {"all": {"records": ["x"]}}}))
+    with pytest.raises(SystemExit, match=r"policies\.all may hold only \['steps', 'wall_clock_s'\]"):
+        cli.main(argv)
+    meta_file.write_text(yaml.safe_dump({**meta("bad-track"), "policies": {"S": {"steps": 1}}}))
+    with pytest.raises(SystemExit, match=r"policies\.S: no --policy for that track"):
+        cli.main(argv)
+
+
+def test_add_refuses_records_git_ignores(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import subprocess
+
+    board = make_repo(tmp_path)
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    (tmp_path / ".gitignore").write_text("runs/\n")
+    folder = write_records(tmp_path / "runs" / "eval" / "hover", "hover", ENV, 0, 3)
+    meta_file = tmp_path / "meta.yaml"
+    meta_file.write_text(yaml.safe_dump(meta("ignored")))
+    monkeypatch.chdir(tmp_path)
+    argv = ["leaderboard", "add", "--policy", "hover", "--meta", str(meta_file), "--records", str(folder)]
+    with pytest.raises(SystemExit) as raised:
+        cli.main(argv)
+    message = str(raised.value)
+    assert "\n" not in message and message.startswith("racebench leaderboard add: ignored: records folder")
+    assert "'runs/eval/hover' is ignored by git (.gitignore:1:runs/)" in message
+    assert "a pull request cannot carry its records" in message
+    assert not (board / "ignored").exists()
+    tracked = write_records(tmp_path / "results" / "hover", "hover", ENV, 0, 3)  # the same records, carriable
+    assert cli.main([*argv[:-1], str(tracked)]) == 0
+
+
+def test_an_onnx_policy_is_named_once(board: Path) -> None:
+    from racebench.leaderboard.entries import Entry, Policy
+
+    entries = {e.name: e for e in load_entries(board)}
+    assert entries["onnx-public-only"].policies["all"].onnx == entries["onnx-public-only"].policies["all"].policy
+    assert entries["onnx-public-only"].kind == "onnx"  # was "onnx + onnx": the policy is its own export
+    assert entries["planner"].kind == "builtin"
+    zips = {t: Policy(t, f"{t}.zip", "0" * 64, [], onnx=f"{t}.onnx") for t in ("S", "Circle", "J")}
+    assert Entry({}, board, board, zips).kind == "sb3 + onnx"
+    assert Entry({}, board, board, {**zips, "J": Policy("J", "J.onnx", "0" * 64, [], onnx="J.onnx")}).kind == "onnx/sb3"

@@ -4,6 +4,7 @@ episodes, and the committed ``results/`` regenerated from the committed records 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,7 @@ from racebench.reporting.paper import (
     at_a_glance,
     cell,
     judge_claims,
+    relink,
     replace_readme_block,
     write_report,
 )
@@ -162,15 +164,25 @@ def test_the_readme_block_is_replaced_between_its_markers_only() -> None:
 def test_committed_results_regenerate_byte_for_byte(tmp_path: Path) -> None:
     """The committed tables, claims and README block are what `racebench paper-tables` makes of the committed
     records (no training, no flying)."""
-    written = write_report(ROOT, tmp_path, readme=None)
+    written = write_report(ROOT, tmp_path, readme=None, links_from="results")  # as if written into results/
     compared = [path for path in written if path.suffix in (".md", ".csv", ".tex")]
     assert {path.name for path in compared} >= {"table_ii.md", "table_iii.tex", "table_iv.csv", "claims.md"}
     for path in compared:
         committed = ROOT / "results" / path.relative_to(tmp_path)
         assert committed.read_text() == path.read_text(), f"results/{path.name} is stale: run racebench paper-tables"
     readme = (ROOT / "README.md").read_text()
-    block = (tmp_path / "at_a_glance.md").read_text()
+    block = relink((tmp_path / "at_a_glance.md").read_text(), ROOT / "results", ROOT)  # its links from the root
     assert replace_readme_block(readme, block) == readme, "README's results block is stale: run racebench paper-tables"
+
+
+def test_the_at_a_glance_links_work_from_the_readme_and_from_results(tmp_path: Path) -> None:
+    block = "[a](docs/evaluation.md#the-lap-time-lower-bound), [b](results/table_ii.csv), [c](results/), [d](https://x.org/y)"
+    assert relink(block, ROOT, ROOT / "results") == (
+        "[a](../docs/evaluation.md#the-lap-time-lower-bound), [b](table_ii.csv), [c](./), [d](https://x.org/y)"
+    )
+    assert relink(relink(block, ROOT, ROOT / "results"), ROOT / "results", ROOT) == block
+    links = re.findall(r"\]\(([^)\s#]+)", (ROOT / "results" / "at_a_glance.md").read_text())
+    assert links and all((ROOT / "results" / link).exists() for link in links if ":" not in link)
 
 
 def test_paper_tables_command_writes_into_out(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -167,7 +167,7 @@ def export_onnx(model: Any, path: str | Path, normalizer: Any = None) -> Path:
         input_names=names,
         output_names=outputs,
         dynamic_axes={n: {0: "batch"} for n in [*names, *outputs]},
-        dynamo=False,
+        dynamo=False,  # the supported exporter fails on SB3 policies: docs/evaluation.md says why
     )
     return path
 

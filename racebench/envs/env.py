@@ -25,6 +25,7 @@ from racebench.envs.observations import (
     depth_to_uint8,
     state_space,
 )
+from racebench.envs.render_modes import RENDER_MODES, check_render_mode, offered_render_modes
 from racebench.envs.reward import REWARD_TERMS, RewardWeights, reward_terms
 from racebench.envs.starts import (  # noqa: F401  (START_POINT_*: re-exported, racebench.envs.env's names)
     START_MODES,
@@ -33,7 +34,6 @@ from racebench.envs.starts import (  # noqa: F401  (START_POINT_*: re-exported, 
     start_at_a_point,
     start_before_a_gate,
 )
-from racebench.sim.bullet import display_available
 from racebench.sim.camera import DepthCamera
 from racebench.sim.collision import CollisionChecker
 from racebench.sim.obstacles import (
@@ -173,7 +173,7 @@ class RaceEnv(gym.Env):
     * v0, outcome version 1: first release.
     """
 
-    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 50}
+    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 50}
 
     def __init__(
         self,
@@ -205,8 +205,7 @@ class RaceEnv(gym.Env):
         ):  # fmt: skip
             if value not in choices:
                 raise ValueError(f"{name} must be one of {choices}, got {value!r}")
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        check_render_mode(render_mode)  # the modes this machine offers, as metadata lists them below
         for name, value in (("control_freq", control_freq), ("physics_freq", physics_freq)):
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise ValueError(f"{name} must be a positive int, got {value!r}")
@@ -269,10 +268,8 @@ class RaceEnv(gym.Env):
         self.substeps = physics_freq // control_freq
         self.dt = 1.0 / physics_freq
         self.max_steps = int(round(max_episode_time * control_freq))
-        # "human" is offered only where a display is: checkers that try every render mode (Gymnasium's
-        # check_env makes one env per mode) would otherwise fail on every headless machine.
-        modes = [m for m in self.metadata["render_modes"] if m != "human" or display_available()]
-        self.metadata = {**self.metadata, "render_fps": control_freq, "render_modes": modes}
+        # "human" only where a display is (racebench.envs.render_modes): check_env tries every listed mode
+        self.metadata = {**self.metadata, "render_fps": control_freq, "render_modes": offered_render_modes()}
 
         self.action_space = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
         depth = depth_space(self.camera.size, depth_format)

@@ -239,7 +239,8 @@ class Evaluator:
         """Run every pending episode, rebuild the CSVs; return the summary of exactly the asked ids × seeds."""
         todo = self.pending()
         started = time.perf_counter()
-        bar = tqdm(total=len(todo), desc=f"{self.agent_name}", disable=not progress, unit="ep")
+        # Nothing left to fly (a complete run resumed): no bar; `racebench evaluate` has said all are done.
+        bar = tqdm(total=len(todo), desc=f"{self.agent_name}", disable=not progress or not todo, unit="ep")
         # Tasks of a few lockstep widths: every worker stays busy, and each record is written as it ends.
         size = max(1, min(2 * self.width, -(-len(todo) // self.workers)))
         tasks = [todo[i : i + size] for i in range(0, len(todo), size)]

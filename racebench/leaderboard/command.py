@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 DEFAULT_LEADERBOARD = "results/leaderboard"
 
@@ -82,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
 
     from racebench.agents.base import AgentLoadError
     from racebench.evaluation.seeds import SeedSetError
-    from racebench.leaderboard.entries import EntryError, add_entry, load_config, load_entries
+    from racebench.leaderboard.entries import EntryError, load_config, load_entries
     from racebench.leaderboard.signing import SignatureError
     from racebench.utils.yamlfile import yaml_problem
 
@@ -96,10 +97,14 @@ def run(args: argparse.Namespace) -> int:
                 raise EntryError(f"--meta {args.meta!r}: unreadable ({why})") from exc
             episodes = args.evaluate if args.evaluate is not None else (0 if args.records else 50)
             policies = _policy_arguments(args.policy)
+            from racebench.leaderboard.submit import add_entry
+
             entry = add_entry(
                 args.leaderboard, policies, meta, args.records, evaluate_episodes=episodes,
-                trust_code=args.trust_code, workers=args.workers,
+                trust_code=args.trust_code, workers=args.workers, progress=not args.quiet,
             )  # fmt: skip
+            for line in _result_lines(entry):
+                print(line)
             print(f"wrote {entry.folder / 'entry.yaml'} ({len(entry.records)} records, tier: self-reported until "
                   "the maintainers sign a verification)")  # fmt: skip
         elif args.leaderboard_command == "verify":
@@ -141,6 +146,24 @@ def run(args: argparse.Namespace) -> int:
     except (EntryError, SignatureError, SeedSetError, AgentLoadError, ValueError, OSError) as exc:
         raise SystemExit(f"{command}: {exc}") from exc
     return 0
+
+
+def _result_lines(entry: Any) -> list[str]:
+    """One line per policy and env id: successes, success rate with its 95 % interval, mean lap time."""
+    from racebench.leaderboard.entries import summarize_cells
+
+    lines = []
+    for track, policy in entry.policies.items():
+        for seed_set in ("public", "private"):
+            cells = summarize_cells([r for r in policy.records if r["seed_set"] == seed_set])
+            for env_id, cell in cells.items():
+                low, high = cell.interval
+                lap = f"{cell.lap_time_mean:.2f} s" if cell.lap_times else "– (no successful lap)"
+                lines.append(
+                    f"{entry.name} {track} {env_id} [{seed_set}]: {cell.successes}/{cell.n} successes "
+                    f"({cell.success_rate:.0%}, 95 % CI {low:.0%}–{high:.0%}), mean lap {lap}"
+                )
+    return lines
 
 
 def _policy_arguments(values: list[str]) -> str | dict[str, str]:

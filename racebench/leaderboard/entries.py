@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -41,7 +40,6 @@ import yaml
 from racebench.agents.base import BUILTIN_AGENTS, BUILTIN_PRIVILEGED, AgentLoadError
 from racebench.agents.trust import VecNormalizeChoiceError, builtin_identity, policy_identity
 from racebench.envs.registration import ENV_VERSION
-from racebench.evaluation.evaluator import Evaluator
 from racebench.evaluation.protocol import SUITES, TRACK_ORDER, split_env_id
 from racebench.evaluation.records import RECORDS_FILE, has_records, name_of, read_folder
 from racebench.evaluation.seeds import seeds_for
@@ -202,9 +200,11 @@ class Entry:
 
     @property
     def kind(self) -> str:
-        """The kinds of its policies' files, e.g. ``sb3 + onnx`` (an ONNX export beside each)."""
+        """The kinds of its policies' files, e.g. ``sb3 + onnx`` (an ONNX export beside each); ``onnx`` once where
+        the policy is the ONNX file itself."""
         kinds = sorted({p.kind for p in self.policies.values()})
-        return "/".join(kinds) + (" + onnx" if all(p.onnx for p in self.policies.values()) else "")
+        exported = all(p.onnx for p in self.policies.values()) and "onnx" not in kinds
+        return "/".join(kinds) + (" + onnx" if exported else "")
 
     def policy_for(self, track: str) -> Policy | None:
         """The policy it flies on ``track`` (its own or the all-track one), None without one."""
@@ -535,80 +535,6 @@ def load_entries(leaderboard: str | Path, names: Sequence[str] | None = None) ->
         folders = [f for f in folders if f.name in names]
     root = repo_root(leaderboard)
     return [load_entry(f, root) for f in folders]
-
-
-def add_entry(
-    leaderboard: str | Path,
-    policies: str | dict[str, str],
-    meta: dict[str, Any],
-    records: Sequence[str] = (),
-    evaluate_episodes: int = 0,
-    trust_code: bool = False,
-    workers: int = 1,
-) -> Entry:
-    """Create ``<leaderboard>/<meta name>/entry.yaml`` for a method's policies (repository paths or built-ins).
-
-    ``policies``: track (``S``, ``Circle``, ``J``) -> policy, or one policy for all tracks. ``meta`` holds the
-    descriptive fields; each policy line is written from the policy, ``records`` (result folders relative to the
-    root; one policy only) and an ONNX policy's own path as ``onnx``. With ``evaluate_episodes > 0`` each policy
-    is first evaluated on the main suite's public seeds into ``<entry>/eval-public-<track>`` (resumable). A name
-    already used is refused (case-insensitive: it names a folder), and so are records made from uncommitted code
-    (:func:`check_clean`). ``entry.yaml`` is written last, so a failed run leaves no entry.
-    """
-    leaderboard = Path(leaderboard)
-    root = repo_root(leaderboard)
-    if not isinstance(meta, dict):
-        raise EntryError(f"the metadata must be a YAML mapping of the entry fields, got {type(meta).__name__}")
-    name = meta.get("name")
-    if not isinstance(name, str) or not _NAME.match(name):
-        raise EntryError(f"name {name!r} must be 1-64 letters, digits, '.', '_' or '-' (it names a folder)")
-    taken = {p.parent.name.lower() for p in leaderboard.glob(f"*/{ENTRY_FILE}")}
-    if name.lower() in taken:
-        raise EntryError(f"an entry named {name!r} already exists in {leaderboard}; choose another name")
-    if isinstance(policies, str):
-        policies = {ALL_TRACKS: policies}
-    if records and len(policies) != 1:
-        raise EntryError(f"{name}: --records belongs to one policy; with several, use --evaluate")
-    folder = leaderboard / name
-    lines: dict[str, dict[str, Any]] = {}
-    for track, policy in policies.items():
-        if track not in POLICY_KEYS:
-            raise EntryError(f"{name}: unknown track {track!r} (allowed: {list(POLICY_KEYS)})")
-        if not policy.startswith("builtin:") and policy in BUILTIN_AGENTS:
-            policy = f"builtin:{policy}"
-        if not policy.startswith("builtin:"):
-            file_part, colon, cls_name = policy.partition(":") if ":" in policy else (policy, "", "")
-            absolute = Path(file_part).resolve()
-            if not absolute.is_relative_to(root):
-                raise EntryError(
-                    f"policy {policy!r} must be a file inside the repository ({root}); commit it there first"
-                )
-            policy = f"{absolute.relative_to(root).as_posix()}{colon}{cls_name}"
-        policy_sha256(policy, root, name)  # a missing or unreadable policy fails before anything is flown
-        folders = [Path(os.path.relpath(Path(r).resolve(), root)).as_posix() for r in records]
-        if evaluate_episodes > 0:
-            out = folder / f"eval-public-{track}"
-            rel = out.resolve().relative_to(root).as_posix()
-            folders = [*folders, rel] if rel not in folders else folders
-        line: dict[str, Any] = {"policy": policy, "records": folders}
-        if policy.endswith(".onnx"):
-            line["onnx"] = policy
-        lines[track] = line
-    full = validate_meta({**meta, "policies": lines}, root, name)  # bad metadata fails before flying
-    if evaluate_episodes > 0:
-        for track, line in lines.items():
-            Evaluator(
-                _spec_at(line["policy"], root) if not line["policy"].startswith("builtin:")
-                else line["policy"].split(":", 1)[1],
-                ["main"], episodes=evaluate_episodes, out_dir=root / line["records"][-1], agent_name=f"{name}-{track}",
-                trust_code=trust_code, workers=workers,
-            ).run(progress=False)  # fmt: skip
-    entry = Entry(full, folder, root, {t: load_policy(name, t, line, root) for t, line in lines.items()})
-    check_clean(name, entry.records)
-    folder.mkdir(parents=True, exist_ok=True)
-    ordered = {k: full[k] for k in META_FIELDS if k in full}
-    (folder / ENTRY_FILE).write_text(dump_entry(ordered))
-    return entry
 
 
 def dump_entry(meta: dict[str, Any]) -> str:

@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -392,6 +394,24 @@ def at_a_glance(
     return "\n".join(lines) + "\n"
 
 
+def relink(markdown: str, source: str | Path, target: str | Path) -> str:
+    """``markdown``'s relative links, written for a page in folder ``source``, rewritten for a page in ``target``.
+
+    The at-a-glance block's links are the README's (from the repository root); its copy ``results/at_a_glance.md``
+    needs them from ``results/``. Links with a scheme (``https:``) and same-page anchors are left as they are.
+    """
+
+    def move(match: re.Match) -> str:
+        link = match.group(1)
+        if re.match(r"[a-z]+:", link) or link.startswith("#"):
+            return match.group(0)
+        path, hash_, anchor = link.partition("#")
+        moved = os.path.relpath(Path(source).resolve() / path, Path(target).resolve())
+        return f"]({Path(moved).as_posix()}{'/' if path.endswith('/') else ''}{hash_}{anchor})"
+
+    return re.sub(r"\]\(([^)\s]+)\)", move, markdown)
+
+
 README_BEGIN = "<!-- results-at-a-glance:begin -->"
 README_END = "<!-- results-at-a-glance:end -->"
 
@@ -410,10 +430,13 @@ def write_report(
     readme: str | Path | None = "README.md",
     campaign: str | Path = CAMPAIGN,
     references: str | Path = REFERENCES,
+    links_from: str | Path | None = None,
 ) -> list[Path]:
     """Write every table, ``claims.md``, ``at_a_glance.md``, the learning curves and the Table IV figures under
     ``out``; update the README's results block. ``campaign`` and ``references`` are folders under ``root`` (campaign 1
-    and its env-version-2 references by default). Returns the files written."""
+    and its env-version-2 references by default). ``at_a_glance.md``'s links are the README block's, rewritten for
+    ``out`` (or for ``root / links_from``: a copy made elsewhere to compare with the committed one). Returns the files
+    written."""
     root, out, campaign = Path(root), Path(out), Path(campaign)
     out.mkdir(parents=True, exist_ok=True)
     episodes = load_episodes(discover_sources(root, campaign, references))
@@ -432,8 +455,8 @@ def write_report(
             atomic_write(stem.with_suffix(suffix), content)
             written.append(stem.with_suffix(suffix))
     atomic_write(out / "claims.md", claims_markdown(judge_claims(episodes), budget_note(root, campaign)))
-    block = at_a_glance(episodes, references, campaign)
-    atomic_write(out / "at_a_glance.md", block)
+    block = at_a_glance(episodes, references, campaign)  # its links are the README's, from the root
+    atomic_write(out / "at_a_glance.md", relink(block, root, out if links_from is None else root / links_from))
     written += [out / "claims.md", out / "at_a_glance.md"]
     if learning_curves(root, out, campaign) is not None:
         written += [out / "learning_curves.csv", *(out / "figures" / f"learning_curves.{f}" for f in FIGURE_FORMATS)]
