@@ -14,7 +14,7 @@ from typing import Any
 
 import racebench
 from racebench.cli_parser import build_parser, parser_of, unrecognized
-from racebench.evaluation.fly import fly, make_env  # noqa: F401 (racebench.cli.fly, as before)
+from racebench.evaluation.episode import fly, make_env  # noqa: F401 (racebench.cli.fly, as before)
 from racebench.utils.files import sha256_file
 
 #: What ``racebench evaluate`` prints above its summary table: what each column is, and its unit.
@@ -236,7 +236,9 @@ def _plot(args: argparse.Namespace) -> int:
         from racebench.evaluation.results import check_one_env_version, load_result_dir
 
         try:
-            entries, versions = plots.entry_summary(args.leaderboard)
+            from racebench.leaderboard.ranking import entry_summary
+
+            entries, versions = entry_summary(args.leaderboard)
             for path in args.results:  # a figure is of one env version: the entries' and the results' alike
                 folder, records = load_result_dir(path, strict=False)
                 versions[str(folder)] = records["env_version"]

@@ -234,7 +234,9 @@ def test_fly_refuses_an_obs_mode_the_policy_does_not_read(tmp_path: Path, monkey
     def made(env_id: str, **kwargs):  # stands in for the env: how far fly() got, and with which mode
         raise RuntimeError(f"made with obs_mode={kwargs['obs_mode']}")
 
-    monkeypatch.setattr(cli, "_make", made)
+    from racebench.evaluation import episode
+
+    monkeypatch.setattr(episode, "make_env", made)
     with pytest.raises(RuntimeError, match="obs_mode=vision"):  # built-ins ignore their observation: either goes
         cli.fly(LEVEL1, "hover", 0, obs_mode="vision")
 

@@ -283,6 +283,7 @@ def test_learned_entries_join_the_figures_and_never_mix_env_versions(flown: Path
     version than the results' are refused, not drawn."""
     from leaderboard_fixtures import add, make_repo, write_hover_onnx, write_records
 
+    from racebench.leaderboard import ranking
     from racebench.leaderboard.entries import MAIN_IDS
 
     board = make_repo(tmp_path / "repo")
@@ -290,17 +291,17 @@ def test_learned_entries_join_the_figures_and_never_mix_env_versions(flown: Path
     for env_id in MAIN_IDS:
         write_records(tmp_path / "repo" / "results" / "mine", str(policy), env_id, 7, 10)
     add(board, str(policy), "mine", [tmp_path / "repo" / "results" / "mine"])
-    assert plots.entry_summary(board)[0].empty  # verified only, by default
-    entries, versions = plots.entry_summary(board, tiers=("self-reported",))
+    assert ranking.entry_summary(board)[0].empty  # verified only, by default
+    entries, versions = ranking.entry_summary(board, tiers=("self-reported",))
     assert set(entries["agent"]) == {"mine (self-reported, public seeds)"}
     assert sorted(entries["track"]) == sorted(TRACK_ORDER) and set(entries["success_rate"]) == {0.7}
     assert set(versions) == {"leaderboard entry mine"}
-    monkeypatch.setattr(plots, "entry_summary", lambda leaderboard: (entries, dict(versions)))
+    monkeypatch.setattr(ranking, "entry_summary", lambda leaderboard: (entries, dict(versions)))
     args = ["-q", "plot", str(flown / "planner"), "--leaderboard", str(board), "--format", "svg", "--dpi", "60"]
     assert cli.main([*args, "--out", str(tmp_path / "figs")]) == 0  # fixture records: this env version
     assert "mine (self-reported, public seeds)" in (tmp_path / "figs" / "success_by_track.svg").read_text()
     older = {"leaderboard entry mine": [2] * len(versions["leaderboard entry mine"])}
-    monkeypatch.setattr(plots, "entry_summary", lambda leaderboard: (entries, older))
+    monkeypatch.setattr(ranking, "entry_summary", lambda leaderboard: (entries, older))
     with pytest.raises(SystemExit, match="--leaderboard: records of several env versions"):
         cli.main([*args, "--out", str(tmp_path / "figs2")])
 

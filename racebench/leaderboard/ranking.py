@@ -9,9 +9,13 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import pairwise
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 from racebench.envs.registration import DENSITIES, GATE_SHIFTS
 from racebench.evaluation.protocol import TRACK_ORDER
@@ -438,3 +442,33 @@ def _paper_tables_section(rows: list[Row]) -> str:
 
 def _tier_badge(tier: str) -> str:
     return f'<span class="tier tier-{tier}">{tier}</span>'
+
+
+def entry_summary(
+    leaderboard: str | Path, tiers: tuple[str, ...] = ("verified",)
+) -> tuple[pd.DataFrame, dict[str, list[int]]]:
+    """Rows like :func:`racebench.evaluation.results.read_summaries`'s of the leaderboard's learned entries of
+    ``tiers`` (by default the verified ones): each entry's own-track public-seed cells (each track flown by its own
+    policy, as the site ranks self-reported entries and as the references are flown), labelled
+    ``<name> (<tier>, public seeds)``. Also the env versions of each entry's records, to check that a figure is of
+    one env version (:func:`racebench.evaluation.results.check_one_env_version`)."""
+    import pandas as pd
+
+    from racebench.evaluation.protocol import split_env_id
+    from racebench.leaderboard.entries import load_config, load_entries
+
+    config = load_config(leaderboard)
+    rows, versions = [], {}
+    for entry in load_entries(leaderboard):
+        tier = entry_row(entry, config).tier
+        if tier not in tiers:
+            continue
+        label = f"{entry.name} ({tier}, public seeds)"
+        for env_id, found in entry.own_cells().items():
+            track, variant = split_env_id(env_id)
+            low, high = found.interval
+            rows.append({"agent": label, "privileged": False, "env_id": env_id, "track": track, "variant": variant,
+                         "n": found.n, "successes": found.successes, "success_rate": found.success_rate,
+                         "sr_ci_low": low, "sr_ci_high": high, "lap_time_mean": found.lap_time_mean})  # fmt: skip
+        versions[f"leaderboard entry {entry.name}"] = [int(r["env_version"]) for r in entry.records]
+    return pd.DataFrame(rows), versions

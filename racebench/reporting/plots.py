@@ -97,35 +97,6 @@ def success_by_track_figure(summary: pd.DataFrame) -> Any:
     return fig
 
 
-def entry_summary(
-    leaderboard: str | Path, tiers: tuple[str, ...] = ("verified",)
-) -> tuple[pd.DataFrame, dict[str, list[int]]]:
-    """Rows like :func:`racebench.evaluation.results.read_summaries`'s of the leaderboard's learned entries of
-    ``tiers`` (by default the verified ones): each entry's own-track public-seed cells (each track flown by its own
-    policy, as the site ranks self-reported entries and as the references are flown), labelled
-    ``<name> (<tier>, public seeds)``. Also the env versions of each entry's records, to check that a figure is of
-    one env version (:func:`racebench.evaluation.results.check_one_env_version`)."""
-    from racebench.evaluation.protocol import split_env_id
-    from racebench.leaderboard.entries import load_config, load_entries
-    from racebench.leaderboard.ranking import entry_row
-
-    config = load_config(leaderboard)
-    rows, versions = [], {}
-    for entry in load_entries(leaderboard):
-        tier = entry_row(entry, config).tier
-        if tier not in tiers:
-            continue
-        label = f"{entry.name} ({tier}, public seeds)"
-        for env_id, found in entry.own_cells().items():
-            track, variant = split_env_id(env_id)
-            low, high = found.interval
-            rows.append({"agent": label, "privileged": False, "env_id": env_id, "track": track, "variant": variant,
-                         "n": found.n, "successes": found.successes, "success_rate": found.success_rate,
-                         "sr_ci_low": low, "sr_ci_high": high, "lap_time_mean": found.lap_time_mean})  # fmt: skip
-        versions[f"leaderboard entry {entry.name}"] = [int(r["env_version"]) for r in entry.records]
-    return pd.DataFrame(rows), versions
-
-
 def plot_success_vs(summary: pd.DataFrame, factor: str, path: str | Path, dpi: int = DEFAULT_DPI) -> Path:
     """SR vs obstacle density (``factor="density"``), gate shift (``"gates"``) or curriculum level (``"levels"``,
     the ``-Level{1,2,3}`` ids), one panel per track; a level, density or shift without results is left out."""
