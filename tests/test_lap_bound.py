@@ -234,14 +234,15 @@ def test_the_forged_hover_record_is_invalid(forged_hover: Path) -> None:
         raise problem.error()
 
 
-def test_table_and_compare_never_count_the_forgery(forged_hover: Path, capsys: pytest.CaptureFixture) -> None:
+def test_table_refuses_and_compare_never_counts_the_forgery(forged_hover: Path, capsys: pytest.CaptureFixture) -> None:
+    """A table refuses a folder holding the forgery, naming it (issue 70, G: a cell is never counted without one of its
+    records); compare, which pairs what both sides have, leaves it out."""
     planner = forged_hover.parent / "planner"
-    assert cli.main(["table", str(forged_hover), str(planner)]) == 0
-    table = capsys.readouterr().out
-    assert "| hover " in table and "0 [0–66]" in table  # 0 of its 2 valid episodes; the forgery is left out
+    with pytest.raises(SystemExit, match=r"racebench table: invalid record .*records.jsonl:3: .*below 0\.885 s"):
+        cli.main(["table", str(forged_hover), str(planner)])
     assert cli.main(["compare", str(forged_hover), str(planner)]) == 0
     compared = capsys.readouterr().out
-    assert "hover (policy dbc725cbf2f6) 0/2 (0 %" in compared
+    assert "hover (policy dbc725cbf2f6): 2 episodes" in compared  # of its 3 records: the forgery left out
 
 
 def test_leaderboard_add_refuses_the_forgery(forged_hover: Path, tmp_path: Path, monkeypatch) -> None:
