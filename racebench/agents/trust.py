@@ -61,7 +61,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "a71b6c79a3e9a7bde889288aeaa59ed3406502995d5d7327462ece55a8ed4fd3": "vision-no-gru-S/vision-no-gru-S.zip",
     "4731e4e37ff4e05629bdfcc1e076bf2a46a452a504067dd3e0342f3e3bef74e6": "vision-no-gru-J/vision-no-gru-J.zip",
     "6770750ec6407172f0795e4d66e7f5372017332d13d69adfff60a5aa65d210e4": "vision-no-gru-Circle/vision-no-gru-Circle.zip",
-    "fe932044362d7182a85aec746dbe5abaea159c4cb496c23f377bebc77bdc99b5": "vision-ppo-S/vision-ppo-S.zip",
+    "4c187ca78a7743a3740196b49d42cf0a99c7f435b3b0cd707e09ddf2bc85cdeb": "vision-ppo-S/vision-ppo-S.zip",
 }
 
 
