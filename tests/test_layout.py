@@ -244,7 +244,7 @@ def pickled_module_paths(checkpoint: Path) -> set[str]:
 
 
 COMMITTED_ZIPS = sorted(
-    [*ROOT.glob("baselines/checkpoints/*/*.zip"), *ROOT.glob("baselines/experiments/campaign-4m/*/checkpoints/*.zip")]
+    [*ROOT.glob("baselines/checkpoints/*/*.zip"), *ROOT.glob("baselines/experiments/campaign-*/*/checkpoints/*.zip")]
 )
 
 
