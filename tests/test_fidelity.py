@@ -25,8 +25,9 @@ import yaml
 
 from racebench.agents.recurrent import RaceFeatures
 from racebench.envs import observations, registration
-from racebench.envs.env import START_POINT_DISTANCE, START_POINT_TRIES, RaceEnv
+from racebench.envs.env import RaceEnv
 from racebench.envs.reward import RewardWeights
+from racebench.envs.starts import START_POINT_DISTANCE, START_POINT_TRIES
 from racebench.sim import placement
 from racebench.sim.camera import DepthCamera
 from racebench.sim.collision import CONTACT_TOLERANCE

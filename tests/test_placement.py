@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 from gymnasium.utils import seeding
 
-from racebench.envs.env import START_POINT_DISTANCE, RaceEnv
+from racebench.envs.env import RaceEnv
 from racebench.envs.registration import DENSITIES, ENV_KWARGS
+from racebench.envs.starts import START_POINT_DISTANCE
 from racebench.sim.obstacles import ObstacleGenerator
 from racebench.sim.placement import (
     AUTHORS_FRACTIONS,

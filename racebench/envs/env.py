@@ -27,13 +27,7 @@ from racebench.envs.observations import (
 )
 from racebench.envs.render_modes import RENDER_MODES, check_render_mode, offered_render_modes
 from racebench.envs.reward import REWARD_TERMS, RewardWeights, reward_terms
-from racebench.envs.starts import (  # noqa: F401  (START_POINT_*: re-exported, racebench.envs.env's names)
-    START_MODES,
-    START_POINT_DISTANCE,
-    START_POINT_TRIES,
-    start_at_a_point,
-    start_before_a_gate,
-)
+from racebench.envs.starts import START_MODES, start_at_a_point, start_before_a_gate
 from racebench.sim.camera import DepthCamera
 from racebench.sim.collision import CollisionChecker
 from racebench.sim.obstacles import (
