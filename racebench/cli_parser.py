@@ -271,7 +271,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p_train = sub.add_parser("train", help="train a baseline (PPO + GRU, curriculum, multi-scene) from a YAML config")
     p_train.add_argument("--config", required=True, help="a shipped config name (e.g. vision-ppo) or a YAML file")
-    p_train.add_argument("--track", default="S", choices=["S", "J", "Circle"], help="track to train on (default S)")
+    p_train.add_argument(
+        "--track", default=None, choices=["S", "J", "Circle", "Random"],
+        help="track to train on (default: the config's own, else S); Random: a new generated track each episode",
+    )  # fmt: skip
     p_train.add_argument(
         "--steps", type=int, default=200_000, help="environment steps (default 200,000; with --resume: steps to add)"
     )

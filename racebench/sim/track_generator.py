@@ -40,6 +40,7 @@ the paper's tracks.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections import Counter
@@ -261,18 +262,28 @@ def paper_track_match(track: Track, tolerance: float = PAPER_TRACK_TOLERANCE) ->
     each lie that close.
     """
     mine = np.array([g.center for g in track.gates])
-    for name in BUILTIN_TRACKS:
-        paper = load_track(name)
-        theirs = np.array([g.center for g in paper.gates])
+    for name, (theirs, loop) in _paper_gates().items():
         if len(theirs) != len(mine):
             continue
-        shifts = range(len(mine)) if (track.closed_loop or paper.closed_loop) else (0,)
+        shifts = range(len(mine)) if (track.closed_loop or loop) else (0,)
         for shift in shifts:
             for order in (1, -1):  # either way round
                 candidate = np.roll(mine[::order], -shift, axis=0)
                 if _aligned_rms(candidate, theirs) <= tolerance:
                     return name
     return None
+
+
+@functools.cache
+def _paper_gates() -> dict[str, tuple[np.ndarray, bool]]:
+    """Each paper track's gate centres ``(n, 3)`` and whether it is a loop (read once)."""
+    out = {}
+    for name in BUILTIN_TRACKS:
+        paper = load_track(name)
+        centres = np.array([g.center for g in paper.gates])
+        centres.flags.writeable = False
+        out[name] = (centres, paper.closed_loop)
+    return out
 
 
 def _aligned_rms(a: np.ndarray, b: np.ndarray) -> float:
