@@ -206,12 +206,16 @@ def _distill(args: argparse.Namespace) -> int:
 
 def _table(args: argparse.Namespace) -> int:
     """``racebench table``: a results table."""
+    from racebench.reporting.generalization import generalization_table
     from racebench.reporting.tables import make_table
 
     try:
-        text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci,
-                          seeds=args.seeds)  # fmt: skip
-    except ValueError as exc:
+        if args.table == "unseen":  # per policy, from the records (paired tests need the episodes)
+            text = generalization_table(args.results, args.format, ci=not args.no_ci)
+        else:
+            text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci,
+                              seeds=args.seeds)  # fmt: skip
+    except (OSError, ValueError) as exc:
         raise SystemExit(f"racebench table: {exc}") from exc
     if args.out:
         Path(args.out).write_text(text)

@@ -193,8 +193,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_table = sub.add_parser("table", help="the paper's Table II, III or IV from result directories / summary CSVs")
     p_table.add_argument("results", nargs="+", help="result directories or summary.csv files")
     p_table.add_argument(
-        "--table", default="II", choices=["II", "III", "IV"],
-        help="II: main results; III: ablations; IV: obstacle density and gate shift (default II)",
+        "--table", default="II", choices=["II", "III", "IV", "unseen"],
+        help="II: main results; III: ablations; IV: obstacle density and gate shift; unseen: the held-out tracks "
+        "(RaceObs-Unseen-v0) per policy with paired tests, docs/unseen-tracks.md (default II)",
     )  # fmt: skip
     p_table.add_argument("--format", default="md", choices=["md", "latex"], help="Markdown or LaTeX (default md)")
     p_table.add_argument("--no-ci", action="store_true", help="success rates without Wilson intervals")
