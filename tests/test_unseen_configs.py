@@ -6,6 +6,7 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from racebench.evaluation.protocol import SUITES
@@ -82,3 +83,18 @@ def test_a_sweep_of_a_random_config_on_a_paper_track_is_refused(tmp_path: Path) 
     path.write_text("configs: [vision-ppo]\ntracks: [Unseen]\nseeds: [0]\nsteps: 1000\n")
     with pytest.raises(ValueError, match="Unseen"):
         load_sweep(path)
+
+
+def test_a_tiny_distillation_on_generated_tracks(tmp_path: Path) -> None:
+    """The DAgger pipeline takes the env id: planner-fast labels generated tracks, the student is evaluated there."""
+    from racebench.training.dagger.loop import distill
+
+    config = dataclasses.replace(
+        load_config("vision-distill-random"), track="Random", iterations=1, steps_per_iteration=128, n_envs=4,
+        batch_size=64, epochs=1, final_student="last", max_samples=1024,
+    )  # fmt: skip
+    config.validate()
+    summary = distill(config, tmp_path, eval_episodes=1)
+    assert Path(summary["checkpoint"]).name == "vision-distill-random-Random.zip"
+    episodes = pd.read_csv(tmp_path / "eval" / "episodes.csv")
+    assert list(episodes["env_id"]) == ["RaceObs-Random-v0"]
