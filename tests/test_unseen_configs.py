@@ -45,6 +45,8 @@ def test_a_config_trains_on_its_own_track_only(tmp_path: Path) -> None:
     path.write_text("name: x\ntrack: Unseen\n")
     with pytest.raises(ValueError, match="track must be one of"):
         TrainConfig.from_yaml(path)
+    with pytest.raises(ValueError, match="held out"):
+        DaggerConfig(env_id="RaceObs-Unseen-v0").validate()
     assert TRAIN_TRACKS == ("S", "J", "Circle", "Random")
 
 

@@ -206,6 +206,10 @@ class DaggerConfig:
                 "fit_samples must be >= batch_size (or null: no cap)",
             ),
             (0 <= self.seed < EVAL_SEED_BASE, f"seed must be in [0, {EVAL_SEED_BASE})"),
+            (
+                self.env_id != "RaceObs-Unseen-v0",  # docs/unseen-tracks.md: nothing trains on the held-out tracks
+                "env_id RaceObs-Unseen-v0 is held out for evaluation: train on RaceObs-Random-v0",
+            ),
             (self.teacher in TEACHERS, f"teacher must be one of {TEACHERS}, got {self.teacher!r}"),
             (self.sequence_length >= 1, "sequence_length must be >= 1"),
             (self.mixture_sigma > 0.0, "mixture_sigma must be > 0"),
