@@ -41,6 +41,7 @@ import numpy as np
 
 from racebench.envs.env import RaceEnv
 from racebench.envs.registration import ENV_KWARGS
+from racebench.sim.disturbances import DrydenWind
 from racebench.sim.quadrotor import QuadrotorParams
 from racebench.sim.track import Gate, Track, load_track
 
@@ -121,14 +122,20 @@ def lap_time_lower_bound(
     gate_shift: float = 0.0,
     gate_shift_z: float | None = None,
     physics_freq: int = 200,
+    max_wind: float = 0.0,
 ) -> float:
     """Lap time (s) below which no lap of ``track`` can be flown by the airframe ``params`` (module docstring): a whole
-    number of physics ticks; a lap of exactly this time is possible as far as the bound can tell."""
+    number of physics ticks; a lap of exactly this time is possible as far as the bound can tell.
+
+    ``max_wind`` (m/s): the largest wind speed. Drag on the air-relative velocity can then do positive work, but only
+    on a body axis where the drone is slower than the wind, and there ``f_i v_i ≤ k_i w² |v_i|``: in all at most
+    ``√3 k_max w² |v|``, which the bound counts as extra thrust ``√3 k_max w² / m``.
+    """
     params = params or QuadrotorParams()
     length, height = lap_geometry(track, gate_shift, gate_shift_z)
     drag = max(params.drag_coefficients) / params.mass
-    ticks = min_ticks_from_rest(length, height, params.max_thrust / params.mass, params.gravity, 1.0 / physics_freq,
-                                drag)  # fmt: skip
+    accel = (params.max_thrust + math.sqrt(3.0) * max(params.drag_coefficients) * max_wind**2) / params.mass
+    ticks = min_ticks_from_rest(length, height, accel, params.gravity, 1.0 / physics_freq, drag)
     return ticks / physics_freq
 
 
@@ -146,4 +153,6 @@ def env_lap_time_bound(env_id: str) -> float:
         track = dataclasses.replace(track, start=dataclasses.replace(track.start, spread=spread))
     quad = kwargs["quadrotor"]
     params = quad if isinstance(quad, QuadrotorParams) else QuadrotorParams(**(quad or {}))
-    return lap_time_lower_bound(track, params, kwargs["gate_shift"], kwargs["gate_shift_z"], kwargs["physics_freq"])
+    wind = DrydenWind(kwargs["wind_gust_std"]).max_speed
+    return lap_time_lower_bound(track, params, kwargs["gate_shift"], kwargs["gate_shift_z"], kwargs["physics_freq"],
+                                wind)  # fmt: skip
