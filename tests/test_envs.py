@@ -17,7 +17,7 @@ ALL_IDS = racebench.ENV_IDS
 
 
 def test_id_list() -> None:
-    assert len(ALL_IDS) == 63 and len(set(ALL_IDS)) == 63
+    assert len(ALL_IDS) == 66 and len(set(ALL_IDS)) == 66
     for track in ("S", "J", "Circle"):
         assert f"RaceObs-{track}-v0" in ALL_IDS
         assert f"RaceObs-{track}-Density5-v0" in ALL_IDS

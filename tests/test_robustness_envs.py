@@ -28,7 +28,7 @@ ROBUST_IDS = [f"RaceObs-{t}-{name}-v0" for t in TRACKS for name in ROBUSTNESS]
 
 
 def test_every_perturbation_is_registered_on_every_track_on_top_of_the_main_id() -> None:
-    assert len(ROBUSTNESS) == 9
+    assert len(ROBUSTNESS) == 10
     for env_id in ROBUST_IDS:
         assert env_id in racebench.ENV_IDS and env_id in gym.registry
         track = env_id.split("-")[1]
@@ -309,5 +309,5 @@ def test_lap_time_bounds_follow_the_airframe_and_the_wind() -> None:
         assert env_lap_time_bound(f"RaceObs-{track}-Mass-v0") > nominal
         assert env_lap_time_bound(f"RaceObs-{track}-Thrust-v0") > nominal
         assert env_lap_time_bound(f"RaceObs-{track}-Wind-v0") < nominal  # a tailwind's drag can push
-        for name in ("Latency", "Control30Hz", "DepthNoise", "CameraTilt", "StateNoise", "Drag"):
+        for name in ("Latency", "Latency30ms", "Control30Hz", "DepthNoise", "CameraTilt", "StateNoise", "Drag"):
             assert env_lap_time_bound(f"RaceObs-{track}-{name}-v0") == nominal

@@ -164,7 +164,7 @@ class RaceEnv(ChaseRendering, gym.Env):
       0.5 m and 1.0 m of the racing line matches the authors' released scenes (``obstacle_placement="band"``;
       version 2's placement is ``"box"``); every id's scenes changed. Added without changing outcomes at the
       defaults: ``start_mode="points"`` (the paper's training starts, at rest); the robustness options and the
-      ``RaceObs-*-{Latency,Control30Hz,DepthNoise,Mass,Thrust,Drag,Wind,CameraTilt,StateNoise}-v0`` ids.
+      ``RaceObs-*-{Latency,Latency30ms,Control30Hz,DepthNoise,Mass,Thrust,Drag,Wind,CameraTilt,StateNoise}-v0`` ids.
     * v0, outcome version 2: every touch is a crash (swept-sphere contact from exact geometry at every physics
       substep, no Bullet collision response; ``crash_reason`` names the gate or obstacle), and a gate crossed on
       a substep that touched its frame is not passed. Since then, without changing any outcome:

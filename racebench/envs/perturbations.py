@@ -39,6 +39,7 @@ _NOMINAL = QuadrotorParams()
 #: The suite: id suffix → the ``RaceEnv`` options it adds to the main id's (density 3, v_d 8 m/s).
 ROBUSTNESS: dict[str, dict[str, Any]] = {
     "Latency": {"command_delay": 0.06},  # the authors' simulator
+    "Latency30ms": {"command_delay": 0.03},  # half of it: where the 60 ms collapse begins
     "Control30Hz": {"control_freq": 30},  # the paper's onboard rate; physics stays at 200 Hz
     "DepthNoise": {"depth_model": "stereo"},  # D435i-like
     "Mass": {"quadrotor": {"mass": 1.2 * _NOMINAL.mass, "inertia": tuple(1.2 * i for i in _NOMINAL.inertia)}},

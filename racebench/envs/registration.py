@@ -5,8 +5,8 @@
 ``-GateShift{0.3,0.5,0.7,1.0}-v0``: gates shifted ±δ m per axis at density 3 (Table IV, bottom);
 ``-Level{1,2,3}-v0``: the curriculum (Sec. III-C.1): 1 = no obstacles, low v_d; 2 = obstacles, low v_d;
 3 = higher v_d, r_vd removed, denser obstacles;
-``-{Latency,Control30Hz,DepthNoise,Mass,Thrust,Drag,Wind,CameraTilt,StateNoise}-v0``: the robustness suite, the main
-id with one sim-to-real gap (:data:`racebench.envs.perturbations.ROBUSTNESS`, ``docs/robustness.md``).
+``-{Latency,Latency30ms,Control30Hz,DepthNoise,Mass,Thrust,Drag,Wind,CameraTilt,StateNoise}-v0``: the robustness
+suite, the main id with one sim-to-real gap (:data:`racebench.envs.perturbations.ROBUSTNESS`, ``docs/robustness.md``).
 """
 
 from __future__ import annotations
