@@ -126,7 +126,7 @@ def _train(args: argparse.Namespace) -> int:
     from racebench.training.callbacks import TrainingInterrupted, checkpoint_on_sigterm
     from racebench.training.dagger.config import DaggerConfig
     from racebench.training.models import resolve_device
-    from racebench.training.run import load_config, run_training
+    from racebench.training.run import default_track, load_config, run_training
 
     try:
         config = load_config(args.config)
@@ -140,7 +140,7 @@ def _train(args: argparse.Namespace) -> int:
         resolve_device(args.device)
         with checkpoint_on_sigterm():  # kill -TERM: a checkpoint at the next rollout end, then a one-line exit
             result = run_training(
-                config, args.track, args.steps, args.seed, args.out, args.resume,
+                config, args.track or default_track(config), args.steps, args.seed, args.out, args.resume,
                 eval_episodes=args.eval_episodes, device=args.device, trust_code=args.trust_code,
             )  # fmt: skip
     except (OSError, ValueError, TrainingInterrupted) as exc:
@@ -206,12 +206,16 @@ def _distill(args: argparse.Namespace) -> int:
 
 def _table(args: argparse.Namespace) -> int:
     """``racebench table``: a results table."""
+    from racebench.reporting.generalization import generalization_table
     from racebench.reporting.tables import make_table
 
     try:
-        text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci,
-                          seeds=args.seeds)  # fmt: skip
-    except ValueError as exc:
+        if args.table == "unseen":  # per policy, from the records (paired tests need the episodes)
+            text = generalization_table(args.results, args.format, ci=not args.no_ci)
+        else:
+            text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci,
+                              seeds=args.seeds)  # fmt: skip
+    except (OSError, ValueError) as exc:
         raise SystemExit(f"racebench table: {exc}") from exc
     if args.out:
         Path(args.out).write_text(text)

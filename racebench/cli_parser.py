@@ -193,8 +193,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_table = sub.add_parser("table", help="the paper's Table II, III or IV from result directories / summary CSVs")
     p_table.add_argument("results", nargs="+", help="result directories or summary.csv files")
     p_table.add_argument(
-        "--table", default="II", choices=["II", "III", "IV"],
-        help="II: main results; III: ablations; IV: obstacle density and gate shift (default II)",
+        "--table", default="II", choices=["II", "III", "IV", "unseen"],
+        help="II: main results; III: ablations; IV: obstacle density and gate shift; unseen: the held-out tracks "
+        "(RaceObs-Unseen-v0) per policy with paired tests, docs/unseen-tracks.md (default II)",
     )  # fmt: skip
     p_table.add_argument("--format", default="md", choices=["md", "latex"], help="Markdown or LaTeX (default md)")
     p_table.add_argument("--no-ci", action="store_true", help="success rates without Wilson intervals")
@@ -271,7 +272,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p_train = sub.add_parser("train", help="train a baseline (PPO + GRU, curriculum, multi-scene) from a YAML config")
     p_train.add_argument("--config", required=True, help="a shipped config name (e.g. vision-ppo) or a YAML file")
-    p_train.add_argument("--track", default="S", choices=["S", "J", "Circle"], help="track to train on (default S)")
+    p_train.add_argument(
+        "--track", default=None, choices=["S", "J", "Circle", "Random"],
+        help="track to train on (default: the config's own, else S); Random: a new generated track each episode",
+    )  # fmt: skip
     p_train.add_argument(
         "--steps", type=int, default=200_000, help="environment steps (default 200,000; with --resume: steps to add)"
     )

@@ -177,6 +177,7 @@ def write_records(
     (spread, so lap statistics are not degenerate); failures crash into an obstacle after one second.
     """
     from racebench.agents import policy_identity
+    from racebench.envs.random_tracks import episode_facts
     from racebench.evaluation import RecordWriter
     from racebench.evaluation.records import env_facts
     from racebench.evaluation.seeds import seeds_for
@@ -187,10 +188,11 @@ def write_records(
     facts = env_facts(env_id)
     dt = facts["control_dt"]
     for i, seed in enumerate(seeds_for(seed_set, n, salt)):
+        gates = {**facts, **episode_facts(env_id, seed)}["gates"]  # a generated track's own count (Unseen, Random)
         if i < successes:
             steps = int(round((lap + 0.1 * i) / dt))
             result = {"success": True, "lap_time": steps * dt, "crashed": False, "crash_reason": None,
-                      "gates_passed": facts["gates"], "return": 10.0, "steps": steps, "error": None}  # fmt: skip
+                      "gates_passed": gates, "return": 10.0, "steps": steps, "error": None}  # fmt: skip
         else:
             result = {"success": False, "lap_time": None, "crashed": True, "crash_reason": "obstacle:0",
                       "gates_passed": 1, "return": -5.0, "steps": int(round(1.0 / dt)), "error": None}  # fmt: skip

@@ -16,6 +16,7 @@ from pathlib import Path
 from gymnasium.utils import seeding
 
 from racebench.envs.env import RaceEnv
+from racebench.envs.random_tracks import RandomTrackEnv, race_env
 from racebench.envs.registration import ENV_KWARGS, ENV_VERSION
 
 #: Training-range seeds 0-99 and a sample of the evaluation seeds (1_000_000 + episode index).
@@ -34,12 +35,16 @@ def scene_digest(env: RaceEnv, seeds: list[int]) -> str:
     """SHA-256 over the JSON of the scene ``env.reset(seed=s)`` draws for each seed (``start_mode="track"``).
 
     Draws through the env's own generator with the generator ``reset`` seeds (Gymnasium's ``np_random``), so no
-    PyBullet scene is built per seed.
+    PyBullet scene is built per seed; a track-source env (``RaceObs-Random-v0``, ``RaceObs-Unseen-v0``) draws the
+    episode's track first, as its ``reset`` does (``RandomTrackEnv.draw_scene``), and the scene's JSON holds the gates.
     """
     digest = hashlib.sha256()
     for seed in seeds:
-        rng, _ = seeding.np_random(seed)
-        scene = env.generator.sample_scene(rng)
+        if isinstance(env, RandomTrackEnv):
+            scene = env.draw_scene(seed)
+        else:
+            rng, _ = seeding.np_random(seed)
+            scene = env.generator.sample_scene(rng)
         digest.update(json.dumps(to_micrometres(scene.to_dict()), sort_keys=True).encode())
     return digest.hexdigest()
 
@@ -68,7 +73,7 @@ def all_digests(env_ids: list[str] | None = None) -> dict[str, dict[str, str]]:
         kwargs = ENV_KWARGS[env_id]
         key = generator_key(kwargs)
         if key not in cache:
-            env = RaceEnv(**{**kwargs, "obs_mode": "state"})
+            env = race_env(**{**kwargs, "obs_mode": "state"})
             try:
                 cache[key] = {group: scene_digest(env, seeds) for group, seeds in SEED_GROUPS.items()}
             finally:

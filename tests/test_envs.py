@@ -17,7 +17,8 @@ ALL_IDS = racebench.ENV_IDS
 
 
 def test_id_list() -> None:
-    assert len(ALL_IDS) == 66 and len(set(ALL_IDS)) == 66
+    assert len(ALL_IDS) == 68 and len(set(ALL_IDS)) == 68
+    assert {"RaceObs-Random-v0", "RaceObs-Unseen-v0"} <= set(ALL_IDS)  # a generated track per episode
     for track in ("S", "J", "Circle"):
         assert f"RaceObs-{track}-v0" in ALL_IDS
         assert f"RaceObs-{track}-Density5-v0" in ALL_IDS

@@ -53,7 +53,8 @@ def test_every_baseline_config_loads() -> None:
     names = {load_config(p).name for p in BASELINES}
     assert names == {
         "vision-ppo", "state-ppo", "vision-no-gru", "vision-no-avoid", "vision-one-step", "vision-com",
-        "vision-ppo-fast", "vision-distill", "vision-distill-ppo", "vision-one-step-flying",
+        "vision-ppo-fast", "vision-distill", "vision-distill-ppo", "vision-one-step-flying", "vision-ppo-random",
+        "vision-distill-random",
     }  # fmt: skip
     assert TrainConfig.from_yaml(BASELINES[0].parent / "vision-no-avoid.yaml").level_kwargs(3)["reward_weights"] == {
         "speed": 0.0,
@@ -321,7 +322,8 @@ def test_training_smoke_run(tmp_path: Path, config_path: Path) -> None:
     config = small(
         TrainConfig.from_yaml(config_path), n_envs=4, n_steps=64, batch_size=128, init_from=None, bc_coef=0.0
     )
-    result = train(config, "S", steps=2048, seed=0, out=tmp_path, checkpoint_every=1024, eval_episodes=1)
+    track = config.track or "S"  # vision-ppo-random: a generated track per episode
+    result = train(config, track, steps=2048, seed=0, out=tmp_path, checkpoint_every=1024, eval_episodes=1)
     assert result["timesteps"] >= 2048 and Path(result["checkpoint"]).is_file()
     progress = pd.read_csv(tmp_path / "progress.csv")
     assert len(progress) >= 4 and progress["level"].iloc[0] == config.start_level

@@ -44,6 +44,7 @@ from racebench.envs.registration import ENV_KWARGS
 from racebench.sim.disturbances import DrydenWind
 from racebench.sim.quadrotor import QuadrotorParams
 from racebench.sim.track import Gate, Track, load_track
+from racebench.sim.track_generator import START_SPREAD, TRACK_SOURCES, shortest_lap
 
 
 def _check(length: float, height: float, thrust_accel: float, gravity: float) -> None:
@@ -131,8 +132,14 @@ def lap_time_lower_bound(
     on a body axis where the drone is slower than the wind, and there ``f_i v_i ≤ k_i w² |v_i|``: in all at most
     ``√3 k_max w² |v|``, which the bound counts as extra thrust ``√3 k_max w² / m``.
     """
-    params = params or QuadrotorParams()
-    length, height = lap_geometry(track, gate_shift, gate_shift_z)
+    geometry = lap_geometry(track, gate_shift, gate_shift_z)
+    return _geometry_bound(*geometry, params or QuadrotorParams(), physics_freq, max_wind)
+
+
+def _geometry_bound(
+    length: float, height: float, params: QuadrotorParams, physics_freq: int, max_wind: float = 0.0
+) -> float:
+    """The lap-time bound (s) of a lap at least ``length`` m long starting at most ``height`` m up."""
     drag = max(params.drag_coefficients) / params.mass
     accel = (params.max_thrust + math.sqrt(3.0) * max(params.drag_coefficients) * max_wind**2) / params.mass
     ticks = min_ticks_from_rest(length, height, accel, params.gravity, 1.0 / physics_freq, drag)
@@ -142,17 +149,23 @@ def lap_time_lower_bound(
 @functools.cache
 def env_lap_time_bound(env_id: str) -> float:
     """:func:`lap_time_lower_bound` of a registered env id, from its ``RaceEnv`` kwargs (cached per process, which
-    holds one env version). It does not depend on the id's obstacles."""
+    holds one env version). It does not depend on the id's obstacles. For a track source (``RaceObs-Random-v0``,
+    ``RaceObs-Unseen-v0``) it is the bound of every track the generator can make
+    (:func:`racebench.sim.track_generator.shortest_lap`); a record is also held to its own track's."""
     if env_id not in ENV_KWARGS:
         raise ValueError(f"env_id {env_id!r} is not a racebench id")
     defaults = {k: p.default for k, p in inspect.signature(RaceEnv.__init__).parameters.items()}
     kwargs = {**defaults, **ENV_KWARGS[env_id]}
+    quad = kwargs["quadrotor"]
+    params = quad if isinstance(quad, QuadrotorParams) else QuadrotorParams(**(quad or {}))
+    wind = DrydenWind(kwargs["wind_gust_std"]).max_speed
+    if kwargs["track"] in TRACK_SOURCES:
+        spread = (START_SPREAD,) * 3 if kwargs["start_spread"] is None else tuple(kwargs["start_spread"])
+        geometry = shortest_lap(spread, kwargs["gate_shift"], kwargs["gate_shift_z"])
+        return _geometry_bound(*geometry, params, kwargs["physics_freq"], wind)
     track = load_track(kwargs["track"])
     if kwargs["start_spread"] is not None:
         spread = np.asarray(kwargs["start_spread"], dtype=float)
         track = dataclasses.replace(track, start=dataclasses.replace(track.start, spread=spread))
-    quad = kwargs["quadrotor"]
-    params = quad if isinstance(quad, QuadrotorParams) else QuadrotorParams(**(quad or {}))
-    wind = DrydenWind(kwargs["wind_gust_std"]).max_speed
     return lap_time_lower_bound(track, params, kwargs["gate_shift"], kwargs["gate_shift_z"], kwargs["physics_freq"],
                                 wind)  # fmt: skip

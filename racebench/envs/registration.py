@@ -67,6 +67,15 @@ def max_episode_steps(kwargs: dict[str, Any]) -> int:
 
 
 ENV_KWARGS: dict[str, dict[str, Any]] = variants()
+#: Ids on a generated track per episode (racebench.envs.random_tracks, docs/unseen-tracks.md), the paper's evaluation
+#: setting otherwise: RaceObs-Random-v0 trains on new tracks, RaceObs-Unseen-v0 flies the held-out ones.
+TRACK_SOURCE_IDS: dict[str, dict[str, Any]] = {
+    f"RaceObs-{source}-v0": {"track": source, "density": 3, "desired_speed": HIGH_SPEED}
+    for source in ("Random", "Unseen")
+}
+ENV_KWARGS.update(TRACK_SOURCE_IDS)
+#: The entry point of an id when it is not RaceEnv itself.
+ENTRY_POINTS: dict[str, str] = dict.fromkeys(TRACK_SOURCE_IDS, "racebench.envs.random_tracks:RandomTrackEnv")
 ENV_IDS: list[str] = list(ENV_KWARGS)
 
 
@@ -76,7 +85,7 @@ def register_envs() -> None:
         if env_id not in gym.registry:
             gym.register(
                 id=env_id,
-                entry_point="racebench.envs.env:RaceEnv",
+                entry_point=ENTRY_POINTS.get(env_id, "racebench.envs.env:RaceEnv"),
                 vector_entry_point="racebench.envs.vector:RaceVectorEnv",  # gym.make_vec: batched, worker processes
                 max_episode_steps=max_episode_steps(kwargs),
                 kwargs=kwargs,

@@ -36,6 +36,7 @@ from gymnasium.vector.utils import batch_space
 from racebench.envs.env import RaceEnv
 from racebench.envs.infos import concat_infos, stack_infos
 from racebench.envs.observations import STATE_DIM
+from racebench.envs.random_tracks import race_env
 from racebench.sim.raycast import BatchDepthRenderer
 
 #: ``multiprocessing.RawArray`` type codes of the depth dtypes (``depth_format``) held in shared memory.
@@ -79,7 +80,7 @@ class EnvBatch:
         max_episode_steps: int | None = None,
         teacher: Labeller | None = None,
     ) -> None:
-        self.envs = [RaceEnv(**kw) for kw in env_kwargs]
+        self.envs = [race_env(**kw) for kw in env_kwargs]
         self.max_episode_steps = max_episode_steps
         self.teachers = None
         if teacher is not None:
@@ -471,7 +472,7 @@ def make_backend(
 
 def probe_env(env_kwargs: dict[str, Any]) -> RaceEnv:
     """One env built in this process for its spaces and settings (and to raise bad kwargs here, early)."""
-    return RaceEnv(**env_kwargs)
+    return race_env(**env_kwargs)
 
 
 # ------------------------------------------------------------------ Gymnasium

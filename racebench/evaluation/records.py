@@ -55,10 +55,10 @@ import numpy as np
 from racebench.agents.base import BUILTIN_PRIVILEGED
 from racebench.envs.env import RaceEnv
 from racebench.envs.lap_bound import env_lap_time_bound
+from racebench.envs.random_tracks import episode_facts, most_gates
 from racebench.envs.registration import ENV_KWARGS
 from racebench.evaluation.protocol import EVAL_SEED_BASE, SEED_PROTOCOL, split_env_id
 from racebench.evaluation.seeds import seed_in_set
-from racebench.sim.track import load_track
 from racebench.utils.files import atomic_write as atomic_write  # re-exported: records.atomic_write
 from racebench.utils.files import sha256_file as sha256_file
 
@@ -212,7 +212,7 @@ def env_facts(env_id: str) -> dict[str, Any]:
     control_freq = int(kwargs["control_freq"])
     physics_freq = int(kwargs["physics_freq"])
     return {
-        "gates": load_track(kwargs["track"]).num_gates,
+        "gates": most_gates(kwargs["track"]),  # a track source's episodes: see episode_facts
         "control_dt": 1.0 / control_freq,
         "physics_freq": physics_freq,
         "control_freq": control_freq,
@@ -274,6 +274,7 @@ def validate_record(record: Any, file_name: str | None = None) -> dict[str, Any]
         salt_hash = record.get("seed_salt_sha256")
         if not (isinstance(salt_hash, str) and re.fullmatch(r"[0-9a-f]{64}", salt_hash)):
             raise bad("a private-seed record needs seed_salt_sha256, the sha256 of its salt")
+    facts = {**facts, **episode_facts(record["env_id"], record["seed"])}  # a track source: the episode's own track
     steps, gates, lap = record["steps"], record["gates_passed"], record["lap_time"]
     reason, error = record["crash_reason"], record["error"]
     if not 0 <= steps <= facts["max_steps"]:

@@ -13,6 +13,11 @@ repository root, two levels above the leaderboard folder. Every record must be v
 (:func:`racebench.evaluation.records.read_record`) and of exactly that policy and the current env version; a new entry's
 records must also come from committed code (``git_dirty: false``).
 
+One more optional line, ``unseen: {policy: ..., records: [...]}``, names the one policy the method flies on the held-out
+tracks (``RaceObs-Unseen-v0``): the site's unseen-tracks column and ranking (:mod:`racebench.leaderboard.unseen`), from
+its public records, checked like every policy line's; it is outside the signed view (a signature covers the per-track
+policies' private cells).
+
 A policy is judged on its **own** track: the track's main id (and its density and gate-shift ids where it has
 them). The rank key is the mean of the three own-track success rates, then the mean lap time; a method without
 all three tracks is listed unranked. Success of a per-track policy on the other tracks is cross-track
@@ -56,6 +61,10 @@ MAIN_IDS: tuple[str, ...] = tuple(SUITES["main"])
 TRACK_MAIN: dict[str, str] = {t: f"RaceObs-{t}-v0" for t in TRACK_ORDER}
 ALL_TRACKS = "all"  # the key of one policy flown on every track
 POLICY_KEYS: tuple[str, ...] = (*TRACK_ORDER, ALL_TRACKS)
+#: The entry.yaml key of the one policy a method flies on the held-out tracks (``RaceObs-Unseen-v0``), a policy line
+#: beside ``policies``: the unseen-tracks column and ranking (:mod:`racebench.leaderboard.unseen`).
+UNSEEN_KEY = "unseen"
+UNSEEN_ID = "RaceObs-Unseen-v0"
 OBS_MODES: tuple[str, ...] = ("vision", "state")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
@@ -73,6 +82,7 @@ META_FIELDS: dict[str, tuple[tuple[type, ...], bool]] = {
     "training_seeds": ((list,), True),
     "policies": ((dict,), True),
     "notes": ((str,), False),
+    UNSEEN_KEY: ((dict,), False),
 }
 POLICY_FIELDS: dict[str, tuple[tuple[type, ...], bool]] = {
     "policy": ((str,), True),
@@ -163,6 +173,7 @@ class Entry:
     folder: Path
     root: Path
     policies: dict[str, Policy] = field(default_factory=dict)
+    unseen: Policy | None = None  # the policy flown on the held-out tracks (entry.yaml's ``unseen``), if any
 
     @property
     def name(self) -> str:
@@ -316,8 +327,10 @@ def validate_meta(meta: Any, root: Path, where: str) -> dict[str, Any]:
         raise EntryError(f"{where}: policies has unknown tracks {unknown} (allowed: {list(POLICY_KEYS)})")
     if ALL_TRACKS in policies and len(policies) > 1:
         raise EntryError(f"{where}: a policy for all tracks excludes per-track policies")
-    for track, line in policies.items():
-        at = f"{where}: policies.{track}"
+    lines = [(f"{where}: policies.{track}", line) for track, line in policies.items()]
+    if UNSEEN_KEY in meta:
+        lines.append((f"{where}: {UNSEEN_KEY}", meta[UNSEEN_KEY]))
+    for at, line in lines:
         if not isinstance(line, dict):
             raise EntryError(f"{at}: expected a mapping {{policy: ..., records: [...]}}, got {type(line).__name__}")
         _check_fields(line, POLICY_FIELDS, at)
@@ -500,7 +513,8 @@ def load_entry(folder: str | Path, root: str | Path | None = None) -> Entry:
     if meta["name"] != folder.name:
         raise EntryError(f"{path}: name {meta['name']!r} differs from its folder {folder.name!r}")
     policies = {track: load_policy(meta["name"], track, line, root) for track, line in meta["policies"].items()}
-    return Entry(meta, folder, root, policies)
+    unseen = load_policy(meta["name"], UNSEEN_KEY, meta[UNSEEN_KEY], root) if UNSEEN_KEY in meta else None
+    return Entry(meta, folder, root, policies, unseen)
 
 
 def load_config(leaderboard: str | Path) -> dict[str, Any]:
@@ -539,11 +553,14 @@ def load_entries(leaderboard: str | Path, names: Sequence[str] | None = None) ->
 
 def dump_entry(meta: dict[str, Any]) -> str:
     """``entry.yaml`` text: block style for the metadata, one flow-style line per policy (adding a track is a line)."""
-    head = {k: v for k, v in meta.items() if k != "policies"}
+    head = {k: v for k, v in meta.items() if k not in ("policies", UNSEEN_KEY)}
     text = yaml.safe_dump(head, sort_keys=False, allow_unicode=True, width=110)
     lines = ["policies:"]
     for track, line in meta["policies"].items():
         lines.append(
             f"  {track}: " + yaml.safe_dump(line, default_flow_style=True, sort_keys=False, width=10_000).strip()
         )
+    if UNSEEN_KEY in meta:
+        flow = yaml.safe_dump(meta[UNSEEN_KEY], default_flow_style=True, sort_keys=False, width=10_000).strip()
+        lines.append(f"{UNSEEN_KEY}: {flow}")
     return text + "\n".join(lines) + "\n"

@@ -16,11 +16,14 @@ from racebench.evaluation.records import read_trajectories
 from racebench.leaderboard import signing
 from racebench.leaderboard.entries import (
     MAIN_IDS,
+    UNSEEN_ID,
+    UNSEEN_KEY,
     Entry,
     _spec_at,
     summarize_cells,
 )
 from racebench.leaderboard.ranking import TRACK_LABELS, Row, _esc, _lap_html, _sr_html, _tier_badge, aggregate
+from racebench.leaderboard.unseen import NO_POLICY, UNSEEN_RANKED_EPISODES, UnseenRow, unseen_cell
 from racebench.reporting import video
 from racebench.reporting.plots import plot_track_3d
 
@@ -67,7 +70,20 @@ def _entry_data(row: Row) -> dict[str, Any]:
         },  # fmt: skip
         "verification_refused": row.refusal,
         "aggregate": aggregate(row.cells, row.outcomes()),
+        "unseen": _unseen_data(entry),
     }
+
+
+def _unseen_data(entry: Entry) -> dict[str, Any] | None:
+    """The unseen-tracks cell of the embedded data (the ranked count), None without one."""
+    cell = unseen_cell(entry)
+    if cell is None:
+        return None
+    return {
+        "env_id": UNSEEN_ID, "n": cell.n, "successes": cell.successes, "wilson95": list(cell.interval),
+        "lap_time_mean": None if math.isnan(cell.lap_time_mean) else cell.lap_time_mean,
+        "ranked": UnseenRow(entry, cell).ranked,
+    }  # fmt: skip
 
 
 def _policies_table(entry: Entry) -> str:
@@ -134,7 +150,7 @@ def _entry_page(row: Row, media: str = "") -> str:
         "verified": "a method whose ONNX policies' private-seed result is signed by the maintainers' pinned key",
         "self-reported": "a method without a valid signed private-seed result",
     }[row.tier]
-    shown = {k: v for k, v in meta.items() if k not in ("policies", "name")}
+    shown = {k: v for k, v in meta.items() if k not in ("policies", "name", UNSEEN_KEY)}
     rows = "".join(
         f"<tr><th>{_esc(k)}</th><td>{_esc(', '.join(map(str, v)) if isinstance(v, list) else v)}</td></tr>"
         for k, v in shown.items()
@@ -172,9 +188,35 @@ def _entry_page(row: Row, media: str = "") -> str:
         " (cross-track generalisation). SR: success rate, 95 % Wilson interval, successes/episodes. Lap time over"
         " successful laps.</p>\n"
         '<table id="cells"><tr><th>policy</th><th>env id</th><th>track</th><th>seed set</th><th>n</th><th>SR</th>'
-        "<th>mean lap</th><th>median lap</th></tr>\n" + "\n".join(cell_rows) + "\n</table>\n" + media
-    )
+        "<th>mean lap</th><th>median lap</th></tr>\n" + "\n".join(cell_rows) + "\n</table>\n"
+        + unseen_entry_html(entry) + "\n" + media
+    )  # fmt: skip
     return _page(f"{entry.name} · racebench leaderboard", body, "../style.css")
+
+
+def unseen_entry_html(entry: Entry) -> str:
+    """An entry page's unseen-tracks section: its policy line and its public cells on the held-out tracks."""
+    policy = entry.unseen
+    parts = ['<h2 id="unseen-tracks">Unseen tracks</h2>']
+    if policy is None:
+        parts.append(f'<p class="muted">No <code>{UNSEEN_KEY}:</code> policy: not in the unseen-tracks ranking.</p>')
+        return "\n".join(parts)
+    parts.append(
+        f"<p>Policy <code>{_esc(policy.policy)}</code> (sha256 <code>{_esc(policy.sha256)}</code>), records in "
+        f"{_esc(', '.join(policy.records_dirs))}: public seeds, not covered by a signature.</p>"
+    )
+    everything, ranked = unseen_cell(entry, None), unseen_cell(entry)
+    if everything is None:
+        parts.append(f'<p class="note">Its records hold no public episode of {_esc(UNSEEN_ID)}.</p>')
+        return "\n".join(parts)
+    lines = [(f"the first {UNSEEN_RANKED_EPISODES} seeds (ranked count)", ranked), ("every committed one", everything)]
+    rows = "".join(
+        f'<tr><td>{_esc(label)}</td><td class="num">{_sr_html(cell)}</td><td class="num">'
+        f"{_lap_html(cell.lap_time_mean, len(cell.lap_times)) if cell else NO_POLICY}</td></tr>\n"
+        for label, cell in lines
+    )
+    parts.append(f'<table id="unseen"><tr><th>episodes</th><th>SR</th><th>mean lap</th></tr>\n{rows}</table>')
+    return "\n".join(parts)
 
 
 def entry_media(entry: Entry, folder: Path, videos: bool = False, trust_code: bool = False) -> str:

@@ -26,11 +26,13 @@ from racebench.leaderboard.entries import (
     MAIN_IDS,
     TIERS,
     TRACK_MAIN,
+    UNSEEN_ID,
     Cell,
     Entry,
     summarize_cells,
 )
 from racebench.leaderboard.signing import VERIFIED_FILE, SignatureError, VerifiedResult
+from racebench.leaderboard.unseen import NO_POLICY, UNSEEN_RANKED_EPISODES, unseen_cell, unseen_rows
 from racebench.reporting.tables import best_separated
 
 TRACK_LABELS: dict[str, str] = {"RaceObs-S-v0": "S", "RaceObs-Circle-v0": "3D Circle", "RaceObs-J-v0": "J"}
@@ -223,12 +225,14 @@ def _ranking_table(table_id: str, rows: list[Row], ranked: bool, bold: dict[str,
         tds.append(f'<td class="num budget">{_budget_html(entry)}</td>')
         seeds = ", ".join(sorted({c.seed_set for c in row.cells.values()})) or "–"
         tds.append(f"<td>{_esc(entry.meta['obs_mode'])}, {_esc(entry.kind)}<br><small>{_esc(seeds)} seeds</small></td>")
+        tds.append(f'<td class="num">{unseen_cell_html(entry)}</td>')
         body.append("<tr>" + "".join(tds) + "</tr>")
     return (
         f'<table class="ranking" id="{table_id}">\n<tr><th>#</th><th>method</th>'
         "<th>rank key <small>(mean own-track SR, then lap)</small></th>"
         f"{head}<th>cross-track SR <small>(other tracks, not ranked)</small></th><th>privileged teacher</th>"
-        "<th>training budget</th><th>sees, policy files</th></tr>\n" + "\n".join(body) + "\n</table>"
+        "<th>training budget</th><th>sees, policy files</th><th>SR unseen tracks <small>(own ranking below)</small>"
+        "</th></tr>\n" + "\n".join(body) + "\n</table>"
     )
 
 
@@ -472,3 +476,51 @@ def entry_summary(
                          "sr_ci_low": low, "sr_ci_high": high, "lap_time_mean": found.lap_time_mean})  # fmt: skip
         versions[f"leaderboard entry {entry.name}"] = [int(r["env_version"]) for r in entry.records]
     return pd.DataFrame(rows), versions
+
+
+# ----------------------------------------------------------------- unseen tracks (racebench.leaderboard.unseen)
+def unseen_cell_html(entry: Entry) -> str:
+    """The main ranking's unseen-tracks column: the success rate, or "—" without an unseen-tracks policy."""
+    cell = unseen_cell(entry)
+    if cell is None:
+        return NO_POLICY
+    short = f"<br><small>under {UNSEEN_RANKED_EPISODES} episodes</small>" if cell.n < UNSEEN_RANKED_EPISODES else ""
+    return _sr_html(cell) + short
+
+
+def unseen_section(entries: Sequence[Entry]) -> str:
+    """The site's unseen-tracks ranking (HTML): its own table, after the main ranking."""
+    rows = unseen_rows(entries)
+    bold = separated_best({r.entry.name: r.cell for r in rows if r.ranked})
+    body, position = [], 0
+    for row in rows:
+        position += row.ranked
+        policy = row.entry.unseen
+        if row.cell is None:
+            status = "no unseen-tracks policy" if policy is None else f"no records of {UNSEEN_ID}"
+        elif row.reference:
+            status = "reference (privileged)"
+        else:
+            status = "ranked" if row.ranked else f"not ranked: under {UNSEEN_RANKED_EPISODES} episodes"
+        lap = _lap_html(row.cell.lap_time_mean, len(row.cell.lap_times)) if row.cell else NO_POLICY
+        klass = "num best" if row.entry.name in bold else "num"
+        body.append(
+            f'<tr><td class="num">{position if row.ranked else "–"}</td>'
+            f'<td><a href="entries/{_esc(row.entry.name)}.html">{_esc(row.entry.name)}</a></td>'
+            f'<td class="{klass}">{_sr_html(row.cell) if row.cell else NO_POLICY}</td><td class="num">{lap}</td>'
+            f"<td>{f'<code>{_esc(policy.policy)}</code>' if policy else NO_POLICY}</td>"
+            f"<td>{_teacher_html(row.entry)}</td><td>{_esc(status)}</td></tr>"
+        )
+    return (
+        '\n<h2 id="unseen-tracks">Unseen tracks</h2>\n'
+        f"<p>The paper's open problem: one policy per method flown on {UNSEEN_RANKED_EPISODES} held-out generated "
+        f"tracks (<code>{UNSEEN_ID}</code>: evaluation episode <i>i</i> flies held-out track <i>i</i> mod 100, with "
+        "the paper's obstacles), named under <code>unseen:</code> in the entry. Its own ranking, by success rate, then"
+        f" mean lap time, on the first {UNSEEN_RANKED_EPISODES} public seeds; it never changes the ranking above."
+        " Public-seed records (self-reported for every tier). Bold: an interval above every other ranked method's."
+        " A method without such a policy shows —.</p>\n"
+        '<table class="ranking" id="ranking-unseen">\n<tr><th>#</th><th>method</th><th>SR held-out tracks</th>'
+        "<th>mean lap</th><th>policy</th><th>privileged teacher</th><th>status</th></tr>\n"
+        + "\n".join(body)
+        + "\n</table>"
+    )

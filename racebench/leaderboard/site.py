@@ -51,6 +51,7 @@ from racebench.leaderboard.ranking import (
     entry_row,
     rank,
     tier_tables,
+    unseen_section,
 )
 from racebench.utils.files import atomic_write
 
@@ -163,7 +164,9 @@ def build_site(
         " all three tracks is listed unranked below its tier. Cross-track success (a per-track policy on the other"
         " tracks) is shown, never ranked. SR cells: percentage, 95 % Wilson interval, successes/episodes."
         " <b>Bold</b> only where a method's interval lies entirely above every other method's of its tier in"
-        " that column.</p>\n" + "\n".join(sections) + '\n<h2 id="aggregate-statistics">Aggregate statistics</h2>\n'
+        " that column. The held-out generated tracks have their own ranking (Unseen tracks, below the tiers).</p>\n"
+        + "\n".join(sections) + unseen_section(entries)
+        + '\n<h2 id="aggregate-statistics">Aggregate statistics</h2>\n'
         "<p>The rank key (mean own-track success over the tracks a method has) with a 95 % percentile interval from"
         f" scipy's bootstrap ({BOOTSTRAP_RESAMPLES} resamples of the episodes within each track, i.e. stratified"
         " over tracks). <b>Every policy is a single training run (one training seed)</b>, so these intervals cover"

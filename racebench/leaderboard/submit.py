@@ -21,6 +21,7 @@ from racebench.leaderboard.entries import (
     ENTRY_FILE,
     META_FIELDS,
     POLICY_KEYS,
+    UNSEEN_KEY,
     Entry,
     EntryError,
     _spec_at,
@@ -101,7 +102,8 @@ def add_entry(
         lines[track] = line
     _merge_budgets(name, meta.get("policies"), lines)
     full = validate_meta({**meta, "policies": lines}, root, name)  # bad metadata fails before flying
-    check_not_ignored(name, root, [f for line in lines.values() for f in line["records"]])
+    unseen_folders = full[UNSEEN_KEY]["records"] if UNSEEN_KEY in full else []  # --meta's unseen: line, if any
+    check_not_ignored(name, root, [f for line in lines.values() for f in line["records"]] + unseen_folders)
     for track, line in lines.items():
         _warn_unknown_budget(name, track, line, root)
     if evaluate_episodes > 0:
@@ -112,8 +114,9 @@ def add_entry(
                 ["main"], episodes=evaluate_episodes, out_dir=root / line["records"][-1], agent_name=f"{name}-{track}",
                 trust_code=trust_code, workers=workers,
             ).run(progress=progress)  # fmt: skip
-    entry = Entry(full, folder, root, {t: load_policy(name, t, line, root) for t, line in lines.items()})
-    check_clean(name, entry.records)
+    unseen = load_policy(name, UNSEEN_KEY, full[UNSEEN_KEY], root) if UNSEEN_KEY in full else None
+    entry = Entry(full, folder, root, {t: load_policy(name, t, line, root) for t, line in lines.items()}, unseen)
+    check_clean(name, entry.records + (unseen.records if unseen else []))
     folder.mkdir(parents=True, exist_ok=True)
     ordered = {k: full[k] for k in META_FIELDS if k in full}
     (folder / ENTRY_FILE).write_text(dump_entry(ordered))

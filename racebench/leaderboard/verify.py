@@ -34,6 +34,7 @@ from racebench.evaluation.evaluator import Evaluator
 from racebench.evaluation.seeds import salt_from_env, salt_sha256
 from racebench.evaluation.statistics import CONSISTENCY_ALPHA, counts_consistent
 from racebench.leaderboard.entries import (
+    UNSEEN_KEY,
     Cell,
     Entry,
     EntryError,
@@ -211,7 +212,8 @@ def verify_entry(
     if fresh:
         shutil.rmtree(Path(out_dir) / entry.name, ignore_errors=True)
     checks: list[CellCheck] = []
-    for track, policy in entry.policies.items():
+    lines = [*entry.policies.items(), *([(UNSEEN_KEY, entry.unseen)] if entry.unseen is not None else [])]
+    for track, policy in lines:  # the unseen-tracks policy too: its public cells are replayed like the others
         checks += _verify_policy(entry, track, policy, out_dir, episodes, trust_code, workers, salt)
     return checks
 

@@ -14,6 +14,7 @@ the arithmetic on them.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -21,7 +22,7 @@ import numpy as np
 from racebench.sim.bullet import bullet_client, display_available, p, quiet_c_output
 from racebench.sim.quadrotor import QuadrotorParams
 from racebench.sim.scene import Scene
-from racebench.sim.track import Track
+from racebench.sim.track import Gate, Track
 
 _PARK_Z = -100.0  # unused obstacle bodies wait here, out of sight and out of reach
 _GATE_RGBA = [0.95, 0.45, 0.05, 1.0]
@@ -165,6 +166,8 @@ class Simulation(_Uncopyable):
         # drone bounce on; every touch is decided from the scene's exact geometry instead (racebench.sim.collision).
         c.setCollisionFilterGroupMask(self.drone, -1, 0, 0)
         self.gates = [self._build_gate(g) for g in track.gates]
+        first = track.gates[0]  # a track's gates share one size (its file's gate_size)
+        self._gate_bodies = {(first.inner, first.outer, first.depth): list(self.gates)}  # by size: fit_gates
         self._pool: dict[tuple, list[int]] = {}
         self._active: list[int] = []
         self._cid = c._client  # the raw client id, for direct pybullet calls on the hot path
@@ -206,6 +209,21 @@ class Simulation(_Uncopyable):
             )
             pool.append(body)
         return pool[index]
+
+    def fit_gates(self, gates: Sequence[Gate]) -> None:
+        """Use one gate body per gate of ``gates`` from now on, for a track of another gate count (its gates all of
+        one size): bodies are built once per size and count, and those not in use are parked out of reach."""
+        sizes = {(g.inner, g.outer, g.depth) for g in gates}
+        if len(sizes) != 1:
+            raise ValueError(f"fit_gates needs gates of one size, got {sorted(sizes)}")
+        size = sizes.pop()
+        pool = self._gate_bodies.setdefault(size, [])
+        while len(pool) < len(gates):
+            pool.append(self._build_gate(gates[len(pool)]))
+        used = pool[: len(gates)]
+        for body in set(self.gates) - set(used):
+            self.client.resetBasePositionAndOrientation(body, [0.0, 0.0, _PARK_Z], (0.0, 0.0, 0.0, 1.0))
+        self.gates = used
 
     def load_scene(self, scene: Scene) -> None:
         """Move gates and obstacles to the poses of ``scene`` (creating pooled bodies only when new)."""

@@ -13,6 +13,7 @@ from racebench.agents.recurrent import ACTION_OUTPUTS, CNN_KINDS
 from racebench.envs.registration import CURRICULUM
 from racebench.envs.starts import START_MODES
 from racebench.sim.obstacles import PLACEMENTS
+from racebench.sim.track import BUILTIN_TRACKS
 from racebench.utils.data import data_file
 from racebench.utils.yamlfile import read_yaml
 
@@ -27,8 +28,13 @@ BASELINES: tuple[str, ...] = (
     "vision-ppo-fast",
     "vision-distill",
     "vision-distill-ppo",
+    "vision-ppo-random",
+    "vision-distill-random",
 )
 
+#: What a run can train on: a paper track, or ``Random``, a new generated track per episode (``RaceObs-Random-v0``,
+#: docs/unseen-tracks.md). ``Unseen`` is held out: nothing trains on it.
+TRAIN_TRACKS: tuple[str, ...] = (*BUILTIN_TRACKS, "Random")
 BC_TARGETS: tuple[str, ...] = ("init", "teacher")  # TrainConfig.bc_target: the frozen init_from policy, the teacher
 
 
@@ -59,6 +65,9 @@ class TrainConfig:
     """A training configuration (one baseline). See ``baselines/*.yaml`` for annotated examples."""
 
     name: str
+    # The track a config is made for (one of TRAIN_TRACKS, e.g. Random for vision-ppo-random): a run's --track
+    # defaults to it and may not differ. None: any track, chosen per run (racebench train --track, default S).
+    track: str | None = None
     obs_mode: str = "vision"
     recurrent: bool = True
     reward_weights: dict[str, float] = field(default_factory=dict)
@@ -153,6 +162,7 @@ class TrainConfig:
         """Raise ``ValueError`` naming the first bad setting."""
         teacher_problem = self.teacher_error()
         checks = [
+            (self.track is None or self.track in TRAIN_TRACKS, f"track must be one of {TRAIN_TRACKS} (or unset)"),
             (self.obs_mode in ("vision", "state"), "obs_mode must be 'vision' or 'state'"),
             (self.start_mode in START_MODES, f"start_mode must be one of {list(START_MODES)}"),
             (self.obstacle_placement in PLACEMENTS, f"obstacle_placement must be one of {list(PLACEMENTS)}"),

@@ -43,7 +43,6 @@ from racebench.agents.loading import SB3Agent, load_vecnormalize_statistics
 from racebench.agents.trust import own_policy_trust, record_written, require_trusted, vecnormalize_path, written_sha256
 from racebench.evaluation.evaluator import Evaluator
 from racebench.evaluation.protocol import EVAL_SEED_BASE
-from racebench.sim.track import BUILTIN_TRACKS
 from racebench.training.callbacks import (
     AtomicCheckpointCallback,
     CriticWarmupCallback,
@@ -56,7 +55,7 @@ from racebench.training.callbacks import (
     TrainingInterrupted,
     _read_progress,
 )
-from racebench.training.config import TrainConfig
+from racebench.training.config import TRAIN_TRACKS, TrainConfig
 from racebench.training.models import (
     frozen_initial_policy,
     linear_schedule,
@@ -108,8 +107,10 @@ def train(
     this run folder (``out``) wrote them itself, as listed in its :data:`~racebench.agents.trust.WRITTEN_FILE` (every
     checkpoint and statistics file a run writes is recorded there); anything else is refused before it is read.
     """
-    if track not in BUILTIN_TRACKS:
-        raise ValueError(f"track must be one of {BUILTIN_TRACKS}, got {track!r}")
+    if track not in TRAIN_TRACKS:
+        raise ValueError(f"track must be one of {TRAIN_TRACKS}, got {track!r}")
+    if config.track is not None and track != config.track:
+        raise ValueError(f"{config.name} trains on track {config.track!r} (its config's track), not {track!r}")
     if config.action_components > 1 and config.init_from is None:  # PPO never trains the candidates' scores
         raise ValueError(
             f"{config.name}: action_components {config.action_components} needs init_from (a mixture student to "

@@ -8,6 +8,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from racebench.evaluation.protocol import split_env_id
 from racebench.training.config import TrainConfig, baseline_path
 from racebench.training.dagger.config import DaggerConfig
 from racebench.training.dagger.loop import distill
@@ -24,6 +25,14 @@ def load_config(name_or_path: str | Path) -> Any:
     if isinstance(data, dict) and data.get("method", "ppo") == "dagger":
         return DaggerConfig.from_yaml(path)
     return TrainConfig.from_yaml(path)
+
+
+def default_track(config: Any) -> str:
+    """The track a run of ``config`` trains on when ``racebench train`` names none: a PPO config's own ``track``, a
+    DAgger config's ``env_id``'s track (``RaceObs-Random-v0``: ``Random``), else ``S``."""
+    if isinstance(config, DaggerConfig):
+        return split_env_id(config.env_id)[0] if config.env_id else "S"
+    return config.track or "S"
 
 
 def run_training(

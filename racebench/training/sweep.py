@@ -74,9 +74,8 @@ from racebench.evaluation.evaluator import Evaluator
 from racebench.evaluation.protocol import EVAL_SEED_BASE, SUITES, split_env_id
 from racebench.evaluation.ray_backend import RayOptions, connected
 from racebench.reporting.validation import validation_curve
-from racebench.sim.track import BUILTIN_TRACKS
 from racebench.training.callbacks import TrainingInterrupted
-from racebench.training.config import BASELINES
+from racebench.training.config import BASELINES, TRAIN_TRACKS, TrainConfig
 from racebench.training.dagger.resume import completed_iterations, resume_folder
 from racebench.training.models import DEVICES
 from racebench.training.ppo import _plain
@@ -154,9 +153,9 @@ def _config_entry(entry: Any, source: str) -> dict[str, Any]:
 
 
 def _check_tracks_and_seeds(tracks: list[Any], seeds: list[Any], source: str) -> None:
-    bad_tracks = [t for t in tracks if t not in BUILTIN_TRACKS]
+    bad_tracks = [t for t in tracks if t not in TRAIN_TRACKS]
     if bad_tracks:
-        raise ValueError(f"{source}: track {bad_tracks[0]!r} is not one of {BUILTIN_TRACKS}")
+        raise ValueError(f"{source}: track {bad_tracks[0]!r} is not one of {TRAIN_TRACKS}")
     if not all(type(s) is int and 0 <= s < EVAL_SEED_BASE for s in seeds):
         raise ValueError(f"{source}: seeds must be integers in [0, {EVAL_SEED_BASE}) (evaluation uses the rest)")
 
@@ -250,6 +249,9 @@ def load_sweep(path: str | Path, out: str | Path | None = None, trust_code: bool
                 config, init_from=f"{folder}/{after}-{{track}}-seed{{seed}}/{after}-{{track}}.zip"
             )
         tracks, seeds = entry.get("tracks", data["tracks"]), entry.get("seeds", data["seeds"])
+        if isinstance(config, TrainConfig) and config.track is not None and set(tracks) != {config.track}:
+            raise ValueError(f"{source}: {config.name!r} trains on track {config.track!r} (its config's track): sweep "
+                             f"it over tracks: [{config.track}], not {tracks}")  # fmt: skip
         several = getattr(config, "train_tracks", None)  # a DAgger student of several tracks: one run per seed
         if several and (len(tracks) != 1 or tracks[0] not in several):
             raise ValueError(
@@ -300,8 +302,11 @@ def latest_checkpoint(run_dir: Path, prefix: str) -> tuple[Path | None, int]:
 
 
 def track_envs(suite: str, track: str) -> tuple[str, ...]:
-    """The ids of evaluation suite ``suite`` on ``track``, the track's main id first (it is always flown)."""
+    """The ids of evaluation suite ``suite`` on ``track``, the track's main id first (it is always flown). A run on
+    ``Random`` tracks is flown on its own id, the held-out tracks and the paper's main ids: its generalisation."""
     main = f"RaceObs-{track}-v0"
+    if track == "Random":
+        return (main, "RaceObs-Unseen-v0", *SUITES["main"])
     return (main, *(env_id for env_id in SUITES[suite] if split_env_id(env_id)[0] == track and env_id != main))
 
 
