@@ -205,13 +205,20 @@ def _distill(args: argparse.Namespace) -> int:
 
 
 def _table(args: argparse.Namespace) -> int:
-    """``racebench table``: a results table."""
+    """``racebench table``: a results table (``--table robustness``: also its CSV and figure)."""
     from racebench.reporting.tables import make_table
 
     try:
-        text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci,
-                          seeds=args.seeds)  # fmt: skip
-    except ValueError as exc:
+        if args.table == "robustness":
+            from racebench.reporting.robustness_report import write_robustness
+
+            text = write_robustness(args.results, args.format, args.csv, args.figure, args.seeds)
+        elif args.csv or args.figure:
+            raise ValueError("--csv and --figure are options of --table robustness")
+        else:
+            text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci,
+                              seeds=args.seeds)  # fmt: skip
+    except (OSError, ValueError) as exc:
         raise SystemExit(f"racebench table: {exc}") from exc
     if args.out:
         Path(args.out).write_text(text)

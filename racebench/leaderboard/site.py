@@ -67,6 +67,7 @@ td.budget { white-space: normal; min-width: 6rem; }  /* the hardware line would 
 td.key { font-weight: 600; background: #f3f0ff; }
 table.ranking td:nth-child(2) { min-width: 18rem; }
 td.best { font-weight: 700; background: #eafbea; }
+td.drop { font-weight: 700; background: #ffebe9; }
 small, .muted { color: #57606a; }
 .tier { display: inline-block; padding: 0 0.45rem; border-radius: 0.6rem; font-size: 0.8rem; color: #fff; }
 .tier-verified { background: #1a7f37; } .tier-self-reported { background: #9a6700; }
@@ -161,7 +162,10 @@ def build_site(
         " policy for all three, each flown on its <b>own</b> track. <b>Rank key</b> (its own column): the mean of"
         " the three own-track success rates, then the mean of the three own-track mean lap times. A method without"
         " all three tracks is listed unranked below its tier. Cross-track success (a per-track policy on the other"
-        " tracks) is shown, never ranked. SR cells: percentage, 95 % Wilson interval, successes/episodes."
+        " tracks) is shown, never ranked, and so is <b>robustness</b>: per track the mean success rate under the nine"
+        " perturbations of the robustness suite over the nominal success rate on the same scenes (public seeds),"
+        " averaged over the tracks where all nine were flown and the nominal rate is above 0 (each entry's page"
+        " has the table). SR cells: percentage, 95 % Wilson interval, successes/episodes."
         " <b>Bold</b> only where a method's interval lies entirely above every other method's of its tier in"
         " that column.</p>\n" + "\n".join(sections) + '\n<h2 id="aggregate-statistics">Aggregate statistics</h2>\n'
         "<p>The rank key (mean own-track success over the tracks a method has) with a 95 % percentile interval from"
