@@ -18,7 +18,7 @@ from leaderboard_fixtures import rewrite_records, write_records
 from racebench import cli
 from racebench.envs.perturbations import ROBUSTNESS
 from racebench.evaluation.protocol import PERTURBATION_IDS, SUITES, TRACK_ORDER, resolve_envs
-from racebench.evaluation.records import seal
+from racebench.evaluation.records import read_folder, seal
 from racebench.reporting.robustness import (
     PERTURBATIONS,
     csv_frame,
@@ -197,3 +197,28 @@ def test_one_command_writes_the_table_its_csv_and_the_figure(example: Path, tmp_
     with pytest.raises(SystemExit, match="no robustness results"):  # the main ids only: nothing to pair
         cli.main(["table", str(write_records(tmp_path / "main", "hover", "RaceObs-S-v0", 1, 2)), "--table",
                   "robustness"])  # fmt: skip
+
+
+def test_the_evaluation_script_flies_every_method_but_planner_into_its_record_folders() -> None:
+    import yaml
+    from scripts_loader import load_script
+
+    script = load_script("evaluate_robustness")
+    board = ROOT / "results" / "leaderboard"
+    jobs = script.plan(board)
+    entries = {path.parent.name: yaml.safe_load(path.read_text()) for path in board.glob("*/entry.yaml")}
+    assert {job.entry for job in jobs} == set(entries) - {"planner"} and "planner-fast" in {j.entry for j in jobs}
+    assert len(jobs) == sum(len(meta["policies"]) for name, meta in entries.items() if name != "planner")
+    for job in jobs:
+        lines = entries[job.entry]["policies"]
+        key, line = next((k, v) for k, v in lines.items() if v["policy"].removeprefix("builtin:") == job.policy)
+        assert job.out == line["records"][0] and job.suites == (("robustness",) if key == "all" else
+                                                                (f"robustness-{key}",))  # fmt: skip
+        assert {r["agent"] for r in read_folder(ROOT / job.out).records.values()} == {job.label}  # --name: its label
+        words = job.command(Path("/clone"), 50, 2, False)
+        assert words[words.index("--out") + 1] == f"/clone/{job.out}" and words[words.index("--name") + 1] == job.label
+        assert ["--episodes", "50", "--workers", "2"] == words[words.index("--episodes") : words.index("--out")]
+    only_s = script.plan(board, only=["hover", "vision-ppo"], tracks=["S"])
+    assert [(j.entry, j.suites) for j in only_s] == [("hover", ("robustness-S",)), ("vision-ppo", ("robustness-S",))]
+    with pytest.raises(SystemExit, match="no entry named"):
+        script.plan(board, only=["nobody"])
