@@ -10,10 +10,11 @@ secret: a verified entry is one whose ``verified.json`` checks against the pinne
 An entry is a method (:mod:`racebench.leaderboard.entries`): each policy is judged on its own track. The **rank
 key**, a visible column, is the mean of the three own-track success rates on the main ids, then the mean of the
 three own-track mean lap times; a method without all three tracks is listed unranked below. Cross-track
-generalisation (per-track policies on the other tracks) is an extra column, never the key. Success rates are
-shown as percentage, 95 % Wilson interval and ``k/n``; a cell is bold only when its interval lies entirely above
-the interval of every other entry of its tier in that column. References (privileged built-ins) are listed for
-scale, never ranked or bold.
+generalisation (per-track policies on the other tracks) is an extra column, never the key, and so is robustness
+(:mod:`racebench.leaderboard.robustness`: success under the robustness suite's perturbations relative to nominal).
+Success rates are shown as percentage, 95 % Wilson interval and ``k/n``; a cell is bold only when its interval lies
+entirely above the interval of every other entry of its tier in that column. References (privileged built-ins) are
+listed for scale, never ranked or bold.
 
 Aggregate statistics: the rank key with a 95 % percentile interval from :func:`scipy.stats.bootstrap` resampling
 episodes within each track (stratified), and rliable's probability of improvement between neighbours of a tier.
