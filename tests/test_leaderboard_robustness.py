@@ -63,12 +63,14 @@ def test_the_site_shows_the_column_and_the_entry_table(tmp_path: Path, twelve: N
     wins = {"Latency": 0, "Control30Hz": 10, "Mass": 5}  # the rest as nominal: 10/12
     for name in ROBUSTNESS:
         write_records(tmp_path / "results" / "hover", "hover", f"RaceObs-S-{name}-v0", wins.get(name, 10), N)
+    for name in ("Latency", "Mass", "Drag"):  # J: three of the nine, so J does not count
+        write_records(tmp_path / "results" / "hover", "hover", f"RaceObs-J-{name}-v0", 1, N)
     index = build_site(board, tmp_path / "site")
     text = index.read_text()
     header = re.search(r'<table class="ranking" id="ranking-self-reported">\n<tr>(.*?)</tr>', text).group(1)
     assert "robustness <small>(perturbed / nominal SR, not ranked)</small>" in header
     expected = (0 + 10 + 5 + 10 * 6) / 9 / 10  # mean perturbed successes over the nominal 10 (of 12)
-    assert f"{100 * expected:.0f} %<br><small>S</small>" in text
+    assert f"{100 * expected:.0f} %<br><small>S; J left out: 3/9 perturbations flown</small>" in text
     data = json.loads(re.search(r'id="leaderboard-data">(.*?)</script>', text, re.S).group(1))["entries"]
     assert data["hover"]["robustness"]["score"] == pytest.approx(expected) and data["random"]["robustness"] is None
     page = (tmp_path / "site" / "entries" / "hover.html").read_text()

@@ -85,8 +85,8 @@ def robustness_column_html(result: EntryRobustness) -> str:
     if score.value is None:
         why = "; ".join(f"{t}: {w}" for t, w in score.left_out.items()) or result.problem or "no robustness records"
         return f'– <small class="muted">({_esc(why)})</small>' if result.flown or result.problem else "–"
-    tracks = "/".join(score.tracks)
-    return f"{100 * score.value:.0f} %<br><small>{_esc(tracks)}{'' if not score.left_out else ' (not all)'}</small>"
+    left = "".join(f"; {t} left out: {w}" for t, w in score.left_out.items())
+    return f"{100 * score.value:.0f} %<br><small>{_esc('/'.join(score.tracks) + left)}</small>"
 
 
 def robustness_data(result: EntryRobustness) -> dict[str, Any] | None:
