@@ -7,6 +7,7 @@ digest, validated on read), with chosen outcomes per seed, so the pairs are know
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from pathlib import Path
@@ -116,6 +117,16 @@ def test_holm_runs_across_the_whole_table(example: Path, tmp_path: Path) -> None
     assert latency["p_holm"].tolist() == pytest.approx([20 / 512 * 6] * 2)  # ranks 3-4 of 8: max(6, 5) x 20/512
     drag = cells[cells["perturbation"] == "Drag"]
     assert drag["p_holm"].tolist() == pytest.approx([2 / 1024 * 8] * 2)
+
+
+def test_a_row_is_paired_on_the_scenes_every_cell_shares(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    folder = write_example(tmp_path / "hover")
+    write_records(folder, "hover", "RaceObs-S-Thrust-v0", 0, 0, lap=5.0, outcomes=[True] * 6)  # stopped midway
+    with caplog.at_level(logging.WARNING, logger="racebench"):
+        cells = robustness_cells(read_robustness([folder])).set_index("perturbation")
+    assert set(cells["pairs"]) == {6} and (cells["nominal_successes"] == 6).all()  # the first 6 scenes, every cell
+    assert cells.loc["Latency", ["only_nominal", "only_perturbed"]].tolist() == [4, 0]  # seeds 2-5 lost
+    assert "paired on the 6 scenes the main id and every perturbation share, one has 12" in caplog.text
 
 
 def test_the_csv_holds_every_number(example: Path) -> None:

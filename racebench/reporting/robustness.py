@@ -96,6 +96,10 @@ def paired_cells(episodes: pd.DataFrame) -> pd.DataFrame:
         if not seeds:
             logger.warning(f"robustness: {method} on {track}: no main-id episode on the perturbations' seeds; left out")
             continue
+        longest = max(int((group["perturbation"] == name).sum()) for name in flown)
+        if longest > len(seeds):  # e.g. an evaluation stopped midway: every cell of the row shrinks to the shortest
+            logger.warning(f"robustness: {method} on {track}: paired on the {len(seeds)} scenes the main id and "
+                           f"every perturbation share, one has {longest}: finish its evaluation")  # fmt: skip
         paired = group[group["seed"].isin(seeds)]
         nominal = paired[paired["perturbation"] == NOMINAL]
         for name in flown:
