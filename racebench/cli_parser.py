@@ -161,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p_paper = sub.add_parser(
         "paper-tables",
-        help="the paper's Tables II-IV, its claims and the learning curves from the committed campaign (no training)",
+        help="the paper's Tables II-IV, its claims and the learning curves from the committed campaigns (no training)",
     )
     p_paper.add_argument("--root", default=".", help="the repository checkout to read (default: .)")
     p_paper.add_argument(

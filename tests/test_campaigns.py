@@ -167,3 +167,19 @@ def test_the_line_at_full_thrust_is_read_for_the_campaigns_env_version(tmp_path:
     shutil.copy(ROOT / LINE_TIMES[3], wrong)  # version 3's figures under version 2's name
     with pytest.raises(ValueError, match=r"measured on env version \[3\], listed for env version 2"):
         lap_time_references(tmp_path, 2)
+
+
+def test_another_sweeps_run_folder_is_a_campaign_of_its_own_in_its_own_folder(tmp_path: Path) -> None:
+    """A run folder no campaign registers: its runs are what it holds (nothing known to be missing), its tables and
+    its claims alone go to <out>/<its name>/, and nothing of the registered campaigns' outputs is written."""
+    _partial_checkout(tmp_path)
+    mine = tmp_path / "runs" / "sweeps" / "mine"
+    mine.mkdir(parents=True)
+    (mine / "vision-ppo-S-seed0").symlink_to(ROOT / CAMPAIGN_2.runs / "vision-ppo-S-seed0")
+    out = tmp_path / "out"
+    written = write_report(tmp_path, out, readme=None, campaign="runs/sweeps/mine", references="results")
+    assert {p.relative_to(out).parts[0] for p in written} == {"mine"}
+    assert "Campaign `mine`, env version 3." in (out / "mine" / "table_iii.md").read_text()
+    claims = (out / "mine" / "claims.md").read_text()
+    assert "| claim | mine (env version 3) |" in claims and "campaign 1" not in claims
+    assert "| vision-ppo > state-ppo | not tested (missing runs) |" in claims

@@ -105,8 +105,8 @@ CAMPAIGNS: dict[str, Campaign] = {c.name: c for c in (CAMPAIGN_1, CAMPAIGN_2)}
 def find_campaign(spec: str | Path | Campaign, references: str | Path | None = None) -> Campaign:
     """The campaign ``spec`` names: a registered name (``campaign-2``), a registered campaign's run folder
     (``baselines/experiments/campaign-2``), or any other run folder (a campaign of its own, read with ``references``
-    for both the built-ins and the students, written into the results folder itself). ``references`` replaces the
-    built-ins' folder; the records' env version must still be the campaign's."""
+    for both the built-ins and the students, default campaign 1's, written into ``<results>/<its folder's name>``).
+    ``references`` replaces the built-ins' folder; the records' env version must still be the campaign's."""
     if isinstance(spec, Campaign):
         found = spec
     else:
@@ -119,7 +119,7 @@ def find_campaign(spec: str | Path | Campaign, references: str | Path | None = N
         else:
             folder = Path(spec)  # its runs are what the folder holds: no sweep file, nothing known to be missing
             refs = Path(references) if references is not None else CAMPAIGN_1.references
-            return Campaign(folder.name, folder.name, folder, None, refs, refs, None, Path("."))
+            return Campaign(folder.name, folder.name, folder, None, refs, refs, None, Path(folder.name))
     return found if references is None else replace(found, references=Path(references))
 
 
@@ -175,7 +175,7 @@ def run_folders(root: str | Path, campaign: Campaign) -> dict[Run, Path]:
         if (planned is None or run in planned) and is_committed(folder):
             found[run] = folder
     for extra in campaign.extra_runs:
-        if (root / extra.folder / "eval" / "summary.csv").is_file():
+        if is_committed(root / extra.folder):
             found[extra.run] = root / extra.folder
     return found
 

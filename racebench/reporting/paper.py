@@ -537,8 +537,8 @@ def write_report(
     """Write every registered campaign's report (or only ``campaign``'s: a name or a run folder,
     :func:`find_campaign`, with ``references`` replacing its built-ins' folder) under the results folder ``out``:
     each campaign's tables, ``at_a_glance.md``, learning curves and Table IV figures into its own folder
-    (:func:`write_campaign`), and ``claims.md`` with every registered campaign's verdicts side by side (an
-    unregistered campaign's alone); update the README's results block when the campaign it shows
+    (:func:`write_campaign`), and ``claims.md`` with every registered campaign's verdicts side by side (another
+    sweep's run folder: its own, in its own folder); update the README's results block when the campaign it shows
     (:func:`readme_campaign`) is written. ``links_from``: the results folder ``out`` stands for, under ``root`` (a copy
     made elsewhere to compare with the committed one). Returns the files written."""
     root, out = Path(root), Path(out)
@@ -552,17 +552,19 @@ def write_report(
         target = None if links_from is None else root / links_from / c.out
         files, block = write_campaign(root, out / c.out, c, loaded[c.name], target)
         written += files
-        if readme is not None and Path(readme).is_file() and c.name == shown.name:
+        if readme is not None and Path(readme).is_file() and c.runs == shown.runs:
             text = Path(readme).read_text()
             atomic_write(Path(readme), replace_readme_block(text, block))
             written.append(Path(readme))
-    judged = list(CAMPAIGNS.values()) if all(c.name in CAMPAIGNS for c in chosen) else chosen
-    chosen_by_name = {c.name: c for c in chosen}
+    registered = [CAMPAIGNS.get(c.name) is not None and CAMPAIGNS[c.name].runs == c.runs for c in chosen]
+    if all(registered):  # every registered campaign's claims, side by side (the chosen ones as chosen)
+        judged, target = [next((c for c in chosen if c.name == r.name), r) for r in CAMPAIGNS.values()], out
+    else:  # another sweep's runs: its claims alone, in its own folder
+        judged, target = chosen, out / chosen[0].out
     sections = []
     for c in judged:
-        c = chosen_by_name.get(c.name, c)
         episodes = loaded[c.name] if c.name in loaded else campaign_episodes(root, c)
         sections.append(claims_section(root, c, episodes))
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write(out / "claims.md", claims_page(sections))
-    return [*written, out / "claims.md"]
+    target.mkdir(parents=True, exist_ok=True)
+    atomic_write(target / "claims.md", claims_page(sections))
+    return [*written, target / "claims.md"]
