@@ -162,19 +162,25 @@ def build_parser() -> argparse.ArgumentParser:
 
     p_paper = sub.add_parser(
         "paper-tables",
-        help="the paper's Tables II-IV, its claims and the learning curves from the committed campaign (no training)",
+        help="the paper's Tables II-IV, its claims and the learning curves from the committed campaigns (no training)",
     )
     p_paper.add_argument("--root", default=".", help="the repository checkout to read (default: .)")
-    p_paper.add_argument("--out", default="results", help="output folder (default: results)")
+    p_paper.add_argument(
+        "--out", default="results",
+        help="the results folder (default: results): campaign 1 writes into it, campaign 2 into its campaign-2/, "
+        "claims.md (every campaign side by side) into it",
+    )  # fmt: skip
     p_paper.add_argument("--no-readme", action="store_true", help="leave README.md's results block as it is")
     p_paper.add_argument(
-        "--campaign", default="baselines/experiments/campaign-4m",
-        help="the campaign's run folder under --root (default: campaign 1, baselines/experiments/campaign-4m)",
+        "--campaign", default=None,
+        help="only this campaign: a registered name (campaign-4m: campaign 1, env version 2; campaign-2: env version "
+        "3), its run folder (baselines/experiments/campaign-2) or another run folder under --root (default: every "
+        "registered campaign); each knows its references and env version",
     )  # fmt: skip
     p_paper.add_argument(
-        "--references", default="results/env-v2",
-        help="the reference agents' evaluations on the campaign's env version, under --root (default: results/env-v2, "
-        "campaign 1's)",
+        "--references", default=None,
+        help="with --campaign: the built-in agents' evaluations on its env version, under --root, instead of its own "
+        "(campaign 1: results/env-v2; campaign 2: results)",
     )  # fmt: skip
     p_paper.add_argument(
         "--trust-code", action="store_true",
