@@ -13,6 +13,7 @@ One run measures, on this machine:
 * evaluation steps/s of the committed ``vision-ppo`` checkpoint (either renderer) and ``state-ppo`` flown in
   lockstep, against the same episodes' actions replayed in one env alone (their ratio), and the policy call
   at batch 1 and 64 on one and two torch threads;
+* the step cost of each robustness perturbation (``RaceObs-<track>-<name>-v0``) against its main id, same run;
 * the cost of each part of a step (physics substep, collision check, state observation, depth render, noise);
 * the CPU time per env step of each vector-env run, summed over its processes (unlike steps/s, not
   lowered by other processes sharing the cores);
@@ -45,8 +46,9 @@ from racebench.agents.export import export_onnx
 from racebench.agents.loading import load_agent
 from racebench.agents.planner import FastPlannerAgent
 from racebench.envs.env import RaceEnv
+from racebench.envs.perturbations import ROBUSTNESS
 from racebench.envs.vector import RaceVectorEnv
-from racebench.evaluation.protocol import EVAL_SEED_BASE
+from racebench.evaluation.protocol import EVAL_SEED_BASE, env_id_of
 from racebench.evaluation.rollout import run_lockstep
 from racebench.evaluation.worker import SingleTorchThread
 from racebench.sim.raycast import BatchDepthRenderer
@@ -60,6 +62,7 @@ TARGET_RENDER_RATIO = 10.0
 TARGET_VISION_STEPS = 4000.0  # steps/s, vectorized over 2 processes
 TARGET_STATE_STEPS = 10000.0  # steps/s, vectorized over 2 processes
 TARGET_VISION_TRAINING = 1500.0  # samples/s, vision-ppo end to end (env + update)
+TARGET_ROBUSTNESS_COST = 1.5  # a perturbation's cost per simulated second over its main id's, same run
 # Training end to end over the vector env's own steps/s (2 processes) in the same run: hosts differ ~2x.
 TARGET_VISION_TRAINING_RATIO = 0.25
 TARGET_STATE_TRAINING_RATIO = 0.3
@@ -106,21 +109,13 @@ class BenchSettings:
 # ------------------------------------------------------------------ poses
 def rotation_from_euler(yaw: float, pitch: float, roll: float) -> np.ndarray:
     """Body → world rotation ``Rz(yaw) Ry(pitch) Rx(roll)``."""
-    cy, sy, cp, sp, cr, sr = (
-        math.cos(yaw),
-        math.sin(yaw),
-        math.cos(pitch),
-        math.sin(pitch),
-        math.cos(roll),
-        math.sin(roll),
-    )
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
+    cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
+    cr, sr = math.cos(roll), math.sin(roll)
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])  # fmt: skip
 
 
 def sample_camera_poses(
@@ -251,6 +246,36 @@ def _bench_single(rec: _Recorder, s: BenchSettings, obs_mode: str, renderer: str
     name = f"single env, {obs_mode}" + (f", {renderer}" if obs_mode == "vision" else "")
     note = f"{episodes} resets included ({s.single_steps / episodes:.0f} steps an episode)" if episodes else "no reset"
     return rec.add("steps", name, rate, "steps/s", note)
+
+
+def _bench_robustness(rec: _Recorder, s: BenchSettings) -> None:
+    """Single-env vision steps/s (ray caster: its cheap frame shows an overhead most) of the main id and each robustness
+    id: hover plus noise from the same seed, resets untimed, the ids stepped in turn a tenth at a time (load changes
+    hit each alike); cost = the id's time per step over the main id's, and per simulated second (judged)."""
+    ids = {n: env_id_of(s.track, "default" if n == "main" else n) for n in ("main", *ROBUSTNESS)}
+    envs = {n: gym.make(env_id, obs_mode="vision", renderer="raycast").unwrapped for n, env_id in ids.items()}
+    actions = {n: _policy(1, s.single_steps + 20, env.params.hover_action, s.seed)[:, 0] for n, env in envs.items()}
+    elapsed = dict.fromkeys(envs, 0.0)
+    for env in envs.values():
+        env.reset(seed=s.seed)
+    for chunk in np.array_split(np.arange(s.single_steps + 20), 10):
+        for name, env in envs.items():
+            for i in chunk:
+                start = time.perf_counter()
+                over = any(env.step(actions[name][i])[2:4])
+                elapsed[name] += (time.perf_counter() - start) * (i >= 20)  # 20 warm-up steps
+                if over:
+                    env.reset()
+    for name, env in envs.items():
+        rec.add("robustness", f"{ids[name]}, vision, raycast", s.single_steps / elapsed[name], "steps/s",
+                f"{env.control_freq} Hz control")  # fmt: skip
+        env.close()
+        if name != "main":
+            rec.add("robustness", f"cost {name} / main, per step", elapsed[name] / elapsed["main"], "x")
+            per_second = elapsed[name] / elapsed["main"] * env.control_freq / envs["main"].control_freq
+            verdict = f"<= {TARGET_ROBUSTNESS_COST:g}: {'met' if per_second <= TARGET_ROBUSTNESS_COST else 'MISSED'}"
+            rec.add("robustness", f"cost {name} / main, per second flown", per_second, "x",
+                    verdict if s.evaluation_and_training else "")  # no verdict on --quick's tiny sizes  # fmt: skip
 
 
 def _bench_vector(rec: _Recorder, s: BenchSettings, obs_mode: str, processes: int, peaks: dict[str, float]) -> float:
@@ -531,13 +556,8 @@ def _bench_parts(rec: _Recorder, s: BenchSettings) -> None:
     rec.add("parts", "physics substep, PyBullet calls only", substep_c, "us", "step + state query")
     rec.add("parts", "collision check (swept sphere, 1 substep)", collision, "us", "exact geometry, every substep")
     rec.add("parts", f"env.advance ({env.substeps} substeps + reward)", advance, "us")
-    rec.add(
-        "parts",
-        "collision checks / env.advance",
-        env.substeps * collision / advance,
-        "ratio",
-        "target <= 0.10 of a step",
-    )
+    rec.add("parts", "collision checks / env.advance", env.substeps * collision / advance, "ratio",
+            "target <= 0.10 of a step")  # fmt: skip
     rec.add("parts", "state observation", state, "us")
     rec.add("parts", "depth render (raycast, 1 camera)", render, "us")
     rec.add("parts", "depth normalise + Gaussian noise", noise, "us", "4096 normal draws")
@@ -575,6 +595,8 @@ def run_benchmark(
         training = _bench_training(rec, s)
     else:
         echo("evaluation and training: skipped (--quick); a full run measures them and judges the targets")
+    echo("robustness suite: step cost of each perturbation against the main id (single env, same run):")
+    _bench_robustness(rec, s)
     echo("parts of a step (µs per call):")
     _bench_parts(rec, s)
     echo("memory:")

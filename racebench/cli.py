@@ -205,13 +205,17 @@ def _distill(args: argparse.Namespace) -> int:
 
 
 def _table(args: argparse.Namespace) -> int:
-    """``racebench table``: a results table."""
+    """``racebench table``: a results table (``--table robustness``: also its CSV and figure)."""
     from racebench.reporting.generalization import generalization_table
+    from racebench.reporting.robustness_report import write_robustness
     from racebench.reporting.tables import make_table
-
     try:
+        if args.table != "robustness" and (args.csv or args.figure):
+            raise ValueError("--csv and --figure are options of --table robustness")
         if args.table == "unseen":  # per policy, from the records (paired tests need the episodes)
             text = generalization_table(args.results, args.format, ci=not args.no_ci)
+        elif args.table == "robustness":
+            text = write_robustness(args.results, args.format, args.csv, args.figure, args.seeds)
         else:
             text = make_table(_summaries(args.results, "table"), args.table, args.format, ci=not args.no_ci,
                               seeds=args.seeds)  # fmt: skip

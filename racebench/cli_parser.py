@@ -112,7 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_eval = sub.add_parser("evaluate", help="evaluate an agent on env ids or suites; writes episodes/summary CSVs")
     p_eval.add_argument("--agent", required=True, help=AGENT_HELP)
     p_eval.add_argument(
-        "--envs", nargs="+", default=["main"], help="env ids and/or suites: main, density, gates, paper (default: main)"
+        "--envs", nargs="+", default=["main"],
+        help="env ids and/or suites: main, density, gates, paper, robustness, robustness-S|Circle|J (default: main)",
     )
     p_eval.add_argument("--episodes", type=int, default=10, help="episodes per env id (default 10, as in the paper)")
     p_eval.add_argument(
@@ -161,19 +162,25 @@ def build_parser() -> argparse.ArgumentParser:
 
     p_paper = sub.add_parser(
         "paper-tables",
-        help="the paper's Tables II-IV, its claims and the learning curves from the committed campaign (no training)",
+        help="the paper's Tables II-IV, its claims and the learning curves from the committed campaigns (no training)",
     )
     p_paper.add_argument("--root", default=".", help="the repository checkout to read (default: .)")
-    p_paper.add_argument("--out", default="results", help="output folder (default: results)")
+    p_paper.add_argument(
+        "--out", default="results",
+        help="the results folder (default: results): campaign 1 writes into it, campaign 2 into its campaign-2/, "
+        "claims.md (every campaign side by side) into it",
+    )  # fmt: skip
     p_paper.add_argument("--no-readme", action="store_true", help="leave README.md's results block as it is")
     p_paper.add_argument(
-        "--campaign", default="baselines/experiments/campaign-4m",
-        help="the campaign's run folder under --root (default: campaign 1, baselines/experiments/campaign-4m)",
+        "--campaign", default=None,
+        help="only this campaign: a registered name (campaign-4m: campaign 1, env version 2; campaign-2: env version "
+        "3), its run folder (baselines/experiments/campaign-2) or another run folder under --root (default: every "
+        "registered campaign); each knows its references and env version",
     )  # fmt: skip
     p_paper.add_argument(
-        "--references", default="results/env-v2",
-        help="the reference agents' evaluations on the campaign's env version, under --root (default: results/env-v2, "
-        "campaign 1's)",
+        "--references", default=None,
+        help="with --campaign: the built-in agents' evaluations on its env version, under --root, instead of its own "
+        "(campaign 1: results/env-v2; campaign 2: results)",
     )  # fmt: skip
     p_paper.add_argument(
         "--trust-code", action="store_true",
@@ -190,12 +197,16 @@ def build_parser() -> argparse.ArgumentParser:
     p_compare.add_argument("b", help="second evaluation directory, one policy's")
     p_compare.add_argument("--out", default=None, help="also write the per-env-id comparison as CSV")
 
-    p_table = sub.add_parser("table", help="the paper's Table II, III or IV from result directories / summary CSVs")
+    p_table = sub.add_parser(
+        "table", help="the paper's Table II, III or IV, or the robustness table, from result directories / summary CSVs"
+    )
     p_table.add_argument("results", nargs="+", help="result directories or summary.csv files")
     p_table.add_argument(
-        "--table", default="II", choices=["II", "III", "IV", "unseen"],
+        "--table", default="II", choices=["II", "III", "IV", "unseen", "robustness"],
         help="II: main results; III: ablations; IV: obstacle density and gate shift; unseen: the held-out tracks "
-        "(RaceObs-Unseen-v0) per policy with paired tests, docs/unseen-tracks.md (default II)",
+        "(RaceObs-Unseen-v0) per policy with paired tests, docs/unseen-tracks.md; robustness: each method's success "
+        "under the robustness suite's perturbations against its main id on the same scenes, paired (exact McNemar, "
+        "Holm over the table) (default II)",
     )  # fmt: skip
     p_table.add_argument("--format", default="md", choices=["md", "latex"], help="Markdown or LaTeX (default md)")
     p_table.add_argument("--no-ci", action="store_true", help="success rates without Wilson intervals")
@@ -205,6 +216,14 @@ def build_parser() -> argparse.ArgumentParser:
         "mean success rate and its range over the seeds (default separate)",
     )  # fmt: skip
     p_table.add_argument("--out", default=None, help="write to this file instead of stdout")
+    p_table.add_argument(
+        "--csv", default=None, metavar="FILE",
+        help="--table robustness: also write every number as CSV (counts, Wilson intervals, change, McNemar, Holm p)",
+    )  # fmt: skip
+    p_table.add_argument(
+        "--figure", default=None, nargs="+", metavar="FILE",
+        help="--table robustness: also draw its figure into each FILE (.png, .pdf or .svg), e.g. --figure f.pdf f.png",
+    )  # fmt: skip
 
     p_plot = sub.add_parser("plot", help="figures from result directories: SR by track, vs density, vs gate shift")
     p_plot.add_argument("results", nargs="+", help="result directories or summary.csv files")

@@ -10,11 +10,14 @@ spline's own curvature) at two budgets:
   **planner-fast's line at full thrust**. It holds along that one line only: a target below it would need another
   line, not a faster tracker. It is **not** a lower bound on the lap time (another line is shorter).
 
-The last column is the lower bound on any lap, on any line, from :mod:`racebench.envs.lap_bound` (the time a
+The next column is the lower bound on any lap, on any line, from :mod:`racebench.envs.lap_bound` (the time a
 point mass at full thrust from rest needs for the straight gate-to-gate distance; record validation refuses a
-success below it).
+success below it). The last column is the env version the scenes are of: the figures are per env version
+(``racebench paper-tables`` reads the file of its campaign's version, :data:`racebench.reporting.paper.LINE_TIMES`).
 
-    python scripts/planner_line_times.py --episodes 20 > baselines/experiments/planner_fast_line_times.txt
+    python scripts/planner_line_times.py --episodes 20 > baselines/experiments/planner_fast_line_times_env-v3.txt
+
+(``planner_fast_line_times.txt``, without that column, was measured on env version 2 and is kept for campaign 1.)
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import numpy as np
 import racebench  # noqa: F401  (registers the ids)
 from racebench.agents.planner import FastPlannerAgent, gate_crossings, thrust_limited_speeds
 from racebench.envs.lap_bound import env_lap_time_bound
+from racebench.envs.registration import ENV_VERSION
 from racebench.evaluation import eval_seeds
 
 
@@ -37,13 +41,14 @@ def lap_time(arc: np.ndarray, speeds: np.ndarray) -> float:
 
 
 def main() -> None:
-    """Print per-track means of the planned profile's time and its two point-mass times, and the lower bound."""
+    """Print per-track means of the planned profile's time and its two point-mass times, the lower bound and the env
+    version."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=20, help="evaluation seeds per main id")
     args = parser.parse_args()
     print(
         "env_id, n, planned profile (s), planner-fast's line at its thrust budget (s), "
-        "planner-fast's line at full thrust (s), lap-time lower bound (s)"
+        "planner-fast's line at full thrust (s), lap-time lower bound (s), env_version"
     )
     for track in ("S", "Circle", "J"):
         env = gym.make(f"RaceObs-{track}-v0", obs_mode="state")
@@ -67,7 +72,8 @@ def main() -> None:
         env.close()
         mean = np.mean(rows, axis=0)
         env_id = f"RaceObs-{track}-v0"
-        print(f"{env_id}, {len(rows)}, {mean[0]:.2f}, {mean[1]:.2f}, {mean[2]:.2f}, {env_lap_time_bound(env_id):.3f}")
+        print(f"{env_id}, {len(rows)}, {mean[0]:.2f}, {mean[1]:.2f}, {mean[2]:.2f}, {env_lap_time_bound(env_id):.3f}, "
+              f"{ENV_VERSION}")
 
 
 if __name__ == "__main__":

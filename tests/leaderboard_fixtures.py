@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import textwrap
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import onnx
@@ -169,9 +169,17 @@ def rewrite_records(folder: Path, edit: Callable[[dict], dict | None]) -> None:
 
 
 def write_records(
-    out: Path, spec: str, env_id: str, successes: int, n: int, lap: float = 6.0, seed_set: str = "public"
+    out: Path,
+    spec: str,
+    env_id: str,
+    successes: int,
+    n: int,
+    lap: float = 6.0,
+    seed_set: str = "public",
+    outcomes: Sequence[bool] | None = None,
 ) -> Path:
-    """Write ``n`` record-valid episodes of ``spec`` on ``env_id`` without flying: the first ``successes`` succeed.
+    """Write ``n`` record-valid episodes of ``spec`` on ``env_id`` without flying: the first ``successes`` succeed,
+    or, given ``outcomes``, episode i succeeds where ``outcomes[i]`` is true (``successes`` and ``n`` ignored).
 
     For site tests, which need chosen counts on the main ids and must stay fast. Successes take ``lap`` + 0.1 s × i
     (spread, so lap statistics are not degenerate); failures crash into an obstacle after one second.
@@ -187,9 +195,11 @@ def write_records(
     writer = RecordWriter(out, identity, identity.source, "pybullet", seed_set, salt_sha256(SALT) if salt else None)
     facts = env_facts(env_id)
     dt = facts["control_dt"]
+    if outcomes is not None:
+        n = len(outcomes)
     for i, seed in enumerate(seeds_for(seed_set, n, salt)):
         gates = {**facts, **episode_facts(env_id, seed)}["gates"]  # a generated track's own count (Unseen, Random)
-        if i < successes:
+        if outcomes[i] if outcomes is not None else i < successes:
             steps = int(round((lap + 0.1 * i) / dt))
             result = {"success": True, "lap_time": steps * dt, "crashed": False, "crash_reason": None,
                       "gates_passed": gates, "return": 10.0, "steps": steps, "error": None}  # fmt: skip

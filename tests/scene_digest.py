@@ -1,9 +1,9 @@
 """Digests of the scenes (gates, obstacles, start pose) every registered id draws at fixed seeds.
 
 ``tests/data/scene_digests.json`` holds these digests as computed on the code before parameter validation was
-added (issue 50, item 5); ``test_env_params.py`` recomputes them, so any change to scene generation for valid
-input fails there. Regenerate (only for an intended, ENV_VERSION-bumping change) with
-``python tests/scene_digest.py tests/data/scene_digests.json`` from the repository root.
+added (issue 50, item 5), floats rounded to 1 µm (:func:`to_micrometres`); ``test_env_params.py`` recomputes them,
+so any change to scene generation for valid input fails there. Regenerate (only for an intended, ENV_VERSION-bumping
+change or new ids) with ``python tests/scene_digest.py tests/data/scene_digests.json`` from the repository root.
 """
 
 from __future__ import annotations
@@ -45,8 +45,24 @@ def scene_digest(env: RaceEnv, seeds: list[int]) -> str:
         else:
             rng, _ = seeding.np_random(seed)
             scene = env.generator.sample_scene(rng)
-        digest.update(json.dumps(scene.to_dict(), sort_keys=True).encode())
+        digest.update(json.dumps(to_micrometres(scene.to_dict()), sort_keys=True).encode())
     return digest.hexdigest()
+
+
+def to_micrometres(value):
+    """``value`` with every float rounded to 6 decimals (1 µm, 1 µrad), ``-0.0`` as ``0.0``.
+
+    The scenes agree across CPUs only to the last bit or so: numpy dispatches ``np.power`` (the band placement's
+    lateral profile) to SIMD code that differs between CPUs with and without AVX-512. Rounding to 1 µm keeps the
+    digests the same on every CPU (a value would have to lie within 1e-16 of a rounding boundary to differ).
+    """
+    if isinstance(value, float):
+        return round(value, 6) + 0.0
+    if isinstance(value, dict):
+        return {k: to_micrometres(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_micrometres(v) for v in value]
+    return value
 
 
 def all_digests(env_ids: list[str] | None = None) -> dict[str, dict[str, str]]:

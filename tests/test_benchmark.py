@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 
 from racebench.cli import main
+from racebench.envs.perturbations import ROBUSTNESS
 
 
 def test_bench_quick_writes_every_measurement(tmp_path, capsys) -> None:
@@ -15,7 +16,7 @@ def test_bench_quick_writes_every_measurement(tmp_path, capsys) -> None:
     assert "MISSED" not in printed and "targets (2 cores)" not in printed  # no verdicts on tiny sizes
     rows = list(csv.DictReader(out.open()))
     values = {row["name"]: float(row["value"]) for row in rows}
-    assert {row["section"] for row in rows} == {"depth", "steps", "cpu", "parts", "memory", "run"}
+    assert {row["section"] for row in rows} == {"depth", "steps", "cpu", "robustness", "parts", "memory", "run"}
     assert values["wall time"] > 0
     for name in (
         "pybullet getCameraImage (TinyRenderer)",
@@ -29,6 +30,10 @@ def test_bench_quick_writes_every_measurement(tmp_path, capsys) -> None:
         "peak RSS, this process",
         "peak RSS, largest worker process",
         "collision check (swept sphere, 1 substep)",
+        "RaceObs-S-v0, vision, raycast",
+        *(f"RaceObs-S-{name}-v0, vision, raycast" for name in ROBUSTNESS),
+        *(f"cost {name} / main, per step" for name in ROBUSTNESS),
+        *(f"cost {name} / main, per second flown" for name in ROBUSTNESS),
     ):
         assert values[name] > 0, name
     # Even a tiny run shows the ray caster well ahead, on the same poses, with the same image.

@@ -17,7 +17,7 @@ ALL_IDS = racebench.ENV_IDS
 
 
 def test_id_list() -> None:
-    assert len(ALL_IDS) == 38 and len(set(ALL_IDS)) == 38
+    assert len(ALL_IDS) == 68 and len(set(ALL_IDS)) == 68
     assert {"RaceObs-Random-v0", "RaceObs-Unseen-v0"} <= set(ALL_IDS)  # a generated track per episode
     for track in ("S", "J", "Circle"):
         assert f"RaceObs-{track}-v0" in ALL_IDS
@@ -304,7 +304,10 @@ def test_the_spec_time_limit_is_the_envs_own() -> None:
     from racebench.envs.registration import MAX_EPISODE_STEPS
 
     for env_id in ALL_IDS:
-        assert gym.spec(env_id).max_episode_steps == MAX_EPISODE_STEPS
+        env = gym.make(env_id, obs_mode="state")
+        assert gym.spec(env_id).max_episode_steps == env.unwrapped.max_steps  # 15 s at the id's control rate
+        assert env.unwrapped.max_steps == (450 if "Control30Hz" in env_id else MAX_EPISODE_STEPS)
+        env.close()
     env = gym.make("RaceObs-Circle-GateShift0.5-v0", obs_mode="state")
     assert env.spec.max_episode_steps == env.unwrapped.max_steps == MAX_EPISODE_STEPS
     env.close()

@@ -173,3 +173,20 @@ def test_the_committed_public_key_is_the_pinned_one_and_its_signatures_check() -
         verdict = entry_row(load_entry(board / name), config)
         assert verdict.tier == "verified", verdict.refusal
         assert all(c.seed_set == "private" and c.n == 50 for c in verdict.cells.values())
+
+
+def test_robustness_records_added_after_signing_keep_the_signature_and_other_records_do_not(
+    repo, monkeypatch
+) -> None:
+    """The suite's records join a signed entry's folder later (the maintainers evaluate every method on it): they
+    are left out of the signed view, so the entry stays verified; a new record of a main id is not."""
+    sign(repo, monkeypatch)
+    public = str(repo["root"] / "policies" / "public.onnx")
+    for name in ("Latency", "Wind"):
+        write_records(repo["root"] / "results" / "pub", public, f"RaceObs-S-{name}-v0", 1, 10)
+    verdict = row(repo)
+    assert verdict.tier == "verified" and verdict.refusal is None
+    assert {r["env_id"] for r in verdict.entry.records} == {S, "RaceObs-S-Latency-v0", "RaceObs-S-Wind-v0"}
+    write_records(repo["root"] / "results" / "pub", public, "RaceObs-S-Density5-v0", 1, 10)
+    verdict = row(repo)
+    assert verdict.tier == "self-reported" and "changed after signing" in verdict.refusal

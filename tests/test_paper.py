@@ -14,12 +14,15 @@ import pytest
 from racebench.cli import main
 from racebench.envs.registration import DENSITIES, GATE_SHIFTS
 from racebench.evaluation.statistics import holm_adjust, trend_test
+from racebench.reporting.campaigns import Run, RunSet, readme_campaign
 from racebench.reporting.paper import (
     PAPER_VARIANTS,
     README_BEGIN,
     README_END,
+    ClaimsSection,
     at_a_glance,
     cell,
+    claims_page,
     judge_claims,
     relink,
     replace_readme_block,
@@ -124,6 +127,103 @@ def test_missing_runs_are_named_not_judged() -> None:
     assert verdicts["vision-ppo > state-ppo"] == "holds"
 
 
+def _flying(frame: pd.DataFrame, flying: int, at_rest: int) -> pd.DataFrame:
+    """``frame`` with vision-one-step (seed 0) at ``at_rest`` and vision-one-step-flying (seed 0) at ``flying``
+    successes per track, on the same scenes; and a seed 1 of vision-one-step that finishes every scene."""
+    frame = frame[frame["method"] != "vision-one-step"]
+    extra = [episodes_of(m, f"RaceObs-{t}-v0", k, seed=s) for t in TRACKS for m, k, s in (
+        ("vision-one-step", at_rest, 0), ("vision-one-step-flying", flying, 0), ("vision-one-step", 100, 1))]
+    return pd.concat([frame, *extra], ignore_index=True)
+
+
+def test_the_flying_start_claim_pairs_seed_0_of_each_and_joins_the_holm_family() -> None:
+    """Campaign 2's rule: vision-one-step-flying > vision-one-step, seed 0 of each (the at-rest seed 1 that finishes
+    everything is not its pair), judged as a difference claim; Holm over all eight claims. Without the flag (campaign
+    1's rule) there is no such claim and the family is seven."""
+    frame = _flying(hand_made_campaign(), flying=90, at_rest=2)
+    seven = {claim.claim: claim for claim in judge_claims(frame)}
+    eight = {claim.claim: claim for claim in judge_claims(frame, flying_start=True)}
+    name = "flying-start hypothesis: vision-one-step-flying > vision-one-step (seed 0 of each)"
+    assert name not in seven and set(eight) == set(seven) | {name}
+    flying = eight[name]
+    assert flying.verdict == "holds" and flying.evidence.startswith("S 90 vs 2; Circle 90 vs 2; J 90 vs 2")
+    tested = [c for c in eight.values() if c.p is not None]
+    assert len(tested) == 8 and not any(c.p_holm_bound for c in tested)
+    for claim, adjusted in zip(tested, holm_adjust([c.p for c in tested]), strict=True):
+        assert claim.p_holm == pytest.approx(adjusted)
+    smallest = min(tested, key=lambda c: c.p)  # Holm multiplies the smallest p by the family's size
+    assert smallest.p_holm == pytest.approx(8 * smallest.p)
+    fewer = [c for c in seven.values() if c.p is not None]
+    assert min(c.p_holm for c in fewer) == pytest.approx(7 * min(c.p for c in fewer))
+    # Flying worse than at rest on every track, by far: the hypothesis is rejected (opposite).
+    rejected = {c.claim: c for c in judge_claims(_flying(hand_made_campaign(), 5, 60), flying_start=True)}[name]
+    assert rejected.verdict == "opposite"
+
+
+def _runs(committed_but: set[tuple[str, str]] = frozenset()) -> RunSet:
+    """The hand-made campaign's runs (seed 0 of each method on each track) as planned, all committed but
+    ``committed_but`` ((config, track) pairs)."""
+    methods = ("vision-ppo", "state-ppo", "vision-com", "vision-no-gru", "vision-no-avoid", "vision-one-step")
+    planned = frozenset(Run(m, t, 0) for m in methods for t in TRACKS)
+    return RunSet(planned, frozenset(r for r in planned if (r.config, r.track) not in committed_but))
+
+
+def test_a_claim_waits_for_all_its_runs_and_holm_is_bounded_until_the_family_is_complete() -> None:
+    """vision-com's J run is missing: its claim is not tested yet (5 of 6 runs). The others are tested, and Holm over
+    the seven is only bounded: p (Holm) <= 7 p. A claim is given a verdict where the bound decides it (7 p < 0.05:
+    holds; p >= 0.05 or a split direction: does not hold) and is pending otherwise (0.05 / 7 <= p < 0.05)."""
+    frame = hand_made_campaign()
+    frame = frame[frame["method"] != "vision-no-avoid"]
+    order = np.r_[np.arange(50), np.arange(60, 65), np.arange(50, 60), np.arange(65, 100)]
+    frame = pd.concat([frame, *(episodes_of("vision-no-avoid", f"RaceObs-{t}-v0", 55, order=order) for t in TRACKS)])
+    partial = {c.claim: c for c in judge_claims(frame, _runs({("vision-com", "J")}))}
+    assert partial["vision-ppo > vision-com"].verdict == "not tested yet (5 of 6 runs)"
+    assert partial["vision-ppo > vision-com"].p is None
+    held = partial["vision-ppo > state-ppo"]
+    assert held.verdict == "holds" and held.p_holm_bound and held.p_holm == pytest.approx(7 * held.p)
+    split = partial["vision-ppo > vision-no-gru"]
+    assert split.verdict == "does not hold at this budget" and split.p_holm_bound
+    waiting = partial["vision-ppo > vision-no-avoid"]  # 30 against 15 discordant scenes: p = 0.036
+    assert 0.05 / 7 <= waiting.p < 0.05 and waiting.verdict == "pending (Holm over 7 claims, 1 not tested yet)"
+    page = claims_page([ClaimsSection("campaign x", "x", 3, "", "x.yaml", 4_000_000, (17, 18),
+                                      list(partial.values()), "")])  # fmt: skip
+    assert f"| ≤ {7 * waiting.p:.2g} | **pending" in page and "While some of them wait for their runs" in page
+    # All runs in: one Holm family of seven, exact, and every claim has its verdict.
+    complete = {c.claim: c for c in judge_claims(frame, _runs())}
+    tested = [c for c in complete.values() if c.p is not None]
+    assert len(tested) == 7 and not any(c.p_holm_bound for c in tested)
+    assert [c.p_holm for c in tested] == pytest.approx(holm_adjust([c.p for c in tested]))
+    assert not any(c.verdict.startswith(("pending", "not tested")) for c in complete.values())
+    assert complete["vision-ppo > vision-com"].verdict == "opposite"
+    # One-step fails needs every run of vision-one-step.
+    fails = {c.claim: c for c in judge_claims(frame, _runs({("vision-one-step", "S")}))}["vision-one-step fails"]
+    assert fails.verdict == "not tested yet (2 of 3 runs)"
+
+
+def test_claims_md_sets_each_campaigns_verdicts_side_by_side_never_pooled() -> None:
+    """Two campaigns, each judged on its own episodes and Holm family: vision-ppo loses to vision-com in one and beats
+    it in the other, and the page gives each its own verdict; the flying-start row is only the second's."""
+    first = judge_claims(hand_made_campaign())
+    frame = hand_made_campaign()
+    frame = frame[frame["method"] != "vision-com"]
+    frame = pd.concat([frame, *(episodes_of("vision-com", f"RaceObs-{t}-v0", 10) for t in TRACKS)])
+    second = judge_claims(_flying(frame, 90, 2), flying_start=True)
+    page = claims_page([
+        ClaimsSection("campaign 1", "campaign-4m", 2, "flying starts", "one.yaml", 4_000_000, (26, 26), first, "B1"),
+        ClaimsSection("campaign 2", "campaign-2", 3, "at rest", "two.yaml", 4_000_000, (1, 33), second, "B2"),
+    ])  # fmt: skip
+    lines = page.splitlines()
+    assert "| claim | campaign 1 (env version 2) | campaign 2 (env version 3) |" in lines
+    com = next(line for line in lines if line.startswith("| vision-ppo > vision-com |")).split(" | ")
+    assert com[1].startswith("**opposite** (p Holm") and com[2].startswith("**holds** (p Holm")
+    flying = next(line for line in lines if line.startswith("| flying-start hypothesis")).split(" | ")
+    assert flying[1] == "– (not in campaign 1's rule)" and flying[2].startswith("**holds**")
+    assert "| campaign 2 (`campaign-2`) | 3 | at rest | 4 M | 1 of 33 | `two.yaml` |" in lines
+    one, two = page.index("## Campaign 1: `campaign-4m`, env version 2"), page.index("## Campaign 2: `campaign-2`")
+    assert one < page.index("B1") < two < page.index("B2")
+    assert "Holm's correction over its 7 claims" in page[one:two] and "over its 8 claims" in page[two:]
+
+
 def test_a_cell_of_several_training_seeds_shows_their_mean_and_range() -> None:
     frame = pd.concat([episodes_of("m", "RaceObs-S-v0", k, seed=i) for i, k in enumerate((70, 80, 90))])
     found = cell(frame, "m", "RaceObs-S-v0")
@@ -162,16 +262,20 @@ def test_the_readme_block_is_replaced_between_its_markers_only() -> None:
 
 
 def test_committed_results_regenerate_byte_for_byte(tmp_path: Path) -> None:
-    """The committed tables, claims and README block are what `racebench paper-tables` makes of the committed
-    records (no training, no flying)."""
+    """The committed tables (campaign 1's in results/, campaign 2's in results/campaign-2/), claims.md and README
+    block are what `racebench paper-tables` makes of the committed records (no training, no flying)."""
     written = write_report(ROOT, tmp_path, readme=None, links_from="results")  # as if written into results/
     compared = [path for path in written if path.suffix in (".md", ".csv", ".tex")]
-    assert {path.name for path in compared} >= {"table_ii.md", "table_iii.tex", "table_iv.csv", "claims.md"}
+    names = {path.relative_to(tmp_path).as_posix() for path in compared}
+    assert names >= {"table_ii.md", "table_iii.tex", "table_iv.csv", "claims.md", "campaign-2/table_ii.md"}
     for path in compared:
-        committed = ROOT / "results" / path.relative_to(tmp_path)
-        assert committed.read_text() == path.read_text(), f"results/{path.name} is stale: run racebench paper-tables"
+        name = path.relative_to(tmp_path).as_posix()
+        committed = ROOT / "results" / name
+        assert committed.is_file(), f"results/{name} is missing: run racebench paper-tables"
+        assert committed.read_text() == path.read_text(), f"results/{name} is stale: run racebench paper-tables"
     readme = (ROOT / "README.md").read_text()
-    block = relink((tmp_path / "at_a_glance.md").read_text(), ROOT / "results", ROOT)  # its links from the root
+    shown = readme_campaign(ROOT).out  # campaign 1's block until campaign 2 has all its runs
+    block = relink((tmp_path / shown / "at_a_glance.md").read_text(), ROOT / "results" / shown, ROOT)  # from the root
     assert replace_readme_block(readme, block) == readme, "README's results block is stale: run racebench paper-tables"
 
 
@@ -181,15 +285,26 @@ def test_the_at_a_glance_links_work_from_the_readme_and_from_results(tmp_path: P
         "[a](../docs/evaluation.md#the-lap-time-lower-bound), [b](table_ii.csv), [c](./), [d](https://x.org/y)"
     )
     assert relink(relink(block, ROOT, ROOT / "results"), ROOT / "results", ROOT) == block
-    links = re.findall(r"\]\(([^)\s#]+)", (ROOT / "results" / "at_a_glance.md").read_text())
-    assert links and all((ROOT / "results" / link).exists() for link in links if ":" not in link)
+    for folder in (ROOT / "results", ROOT / "results" / "campaign-2"):  # each campaign's copy, from its folder
+        links = re.findall(r"\]\(([^)\s#]+)", (folder / "at_a_glance.md").read_text())
+        assert links and all((folder / link).exists() for link in links if ":" not in link)
 
 
 def test_paper_tables_command_writes_into_out(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    assert main(["paper-tables", "--root", str(ROOT), "--out", str(tmp_path), "--no-readme"]) == 0
-    assert (tmp_path / "table_ii.md").is_file() and "wrote" in capsys.readouterr().out
+    """One campaign by its run folder, with its references named: its tables in its own folder under --out, and
+    claims.md (both campaigns) in --out; campaign 1's tables are not written."""
+    argv = ["paper-tables", "--root", str(ROOT), "--out", str(tmp_path), "--no-readme",
+            "--campaign", "baselines/experiments/campaign-2", "--references", "results"]  # fmt: skip
+    assert main(argv) == 0
+    assert (tmp_path / "campaign-2" / "table_ii.md").is_file() and "wrote" in capsys.readouterr().out
+    assert (tmp_path / "claims.md").is_file() and not (tmp_path / "table_ii.md").exists()
+    assert "env version 3" in (tmp_path / "campaign-2" / "table_iii.md").read_text()
     with pytest.raises(SystemExit, match="racebench paper-tables: .* is not a folder"):
         main(["paper-tables", "--root", str(tmp_path / "nowhere"), "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="--references replaces one campaign's references: name the campaign"):
+        main(["paper-tables", "--root", str(ROOT), "--out", str(tmp_path), "--references", "results"])
+    with pytest.raises(SystemExit, match="several env versions"):  # campaign 2's runs with env version 2's references
+        main([*argv[:-1], "results/env-v2"])
 
 
 def test_final_training_success_pools_the_last_window_by_episodes() -> None:

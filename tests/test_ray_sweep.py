@@ -81,7 +81,8 @@ def test_bad_sweep_files_are_named(tmp_path: Path) -> None:
         ({"stepz": 3}, "unknown key 'stepz'"),
         ({"configs": ["tiny.yaml", "tiny.yaml"]}, "two runs would share the folder 'tiny-S-seed0'"),
         ({"overrides": {"batch_size": 100}}, "multiple of batch_size"),
-        ({"eval_suite": "hard"}, r"eval_suite must be one of \['density', 'gates', 'main', 'paper'\], not 'hard'"),
+        ({"eval_suite": "hard"}, r"eval_suite must be one of \['density', 'gates', 'main', 'paper', 'robustness', "
+                                 r"'robustness-Circle', 'robustness-J', 'robustness-S'\], not 'hard'"),
         ({"configs": [{"config": "tiny.yaml", "tracks": ["Q"]}]}, "track 'Q' is not one of"),
         ({"configs": [{"config": "tiny.yaml", "seeds": []}]}, "seeds of 'tiny.yaml' must be a non-empty list"),
         ({"eval_episodes_other": 0}, "eval_episodes_other must be an integer >= 1"),

@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import time
 from typing import Any
 
 import gymnasium as gym
@@ -25,7 +24,8 @@ from racebench.envs.observations import (
     depth_to_uint8,
     state_space,
 )
-from racebench.envs.render_modes import RENDER_MODES, check_render_mode, offered_render_modes
+from racebench.envs.perturbations import Perturbations
+from racebench.envs.render_modes import RENDER_MODES, ChaseRendering, check_render_mode, offered_render_modes
 from racebench.envs.reward import REWARD_TERMS, RewardWeights, reward_terms
 from racebench.envs.starts import START_MODES, start_at_a_point, start_before_a_gate
 from racebench.sim.camera import DepthCamera
@@ -55,7 +55,7 @@ MIN_PHYSICS_FREQ = 100  # Hz
 MAX_PHYSICS_FREQ = 2000  # Hz
 
 
-class RaceEnv(gym.Env):
+class RaceEnv(ChaseRendering, gym.Env):
     """Race a quadrotor through the gates of a track, in order, without touching anything.
 
     Observation (``obs_mode="vision"``, a Dict; ``"state"`` gives the ``state`` array alone):
@@ -113,6 +113,10 @@ class RaceEnv(gym.Env):
             ``CnnPolicy`` / ``MultiInputPolicy`` treat as an image and give a NatureCNN.
         obstacle_placement: ``"band"`` (env version 3: a strip along each leg, matched to the authors' scenes) or
             ``"box"`` (env version 2's box between two gates); see :class:`~racebench.sim.obstacles.ObstacleGenerator`.
+        command_delay, wind_gust_std, camera_tilt, state_noise, depth_model: sim-to-real gaps, off by default
+            (:class:`~racebench.envs.perturbations.Perturbations`, ``docs/robustness.md``): command delay (s), Dryden
+            gust σ (m/s), camera mount error (°), visual-inertial state error (scale), ``"stereo"`` depth. A
+            ``control_freq`` not dividing ``physics_freq`` holds each action from the first tick at or after its time.
 
     Parameter ranges, checked when the env is made (``gym.make``; :meth:`set_task` checks its own the same way):
     a value outside them, a NaN, an inf or a wrong type raises a one-line ``ValueError`` naming the parameter,
@@ -149,7 +153,8 @@ class RaceEnv(gym.Env):
     torque_coefficient 1e-4 … 0.1 m; motor_time_constant 0 … 0.5 s; max_body_rate (each) (0, 35] rad/s
     (≈ 2000 °/s; 0 would divide the observed rates by zero); rate_gain (each) (0, 50] 1/s (stable at 100 Hz);
     drag_coefficients (each) 0 … 10 N/(m/s)²; collision_radius from arm_length to 0.5 m and, with the 0.08 m
-    corridor margin, less than half the track's gate opening; gravity 1 … 25 m/s² (the Moon to Jupiter).
+    corridor margin, less than half the track's gate opening; gravity 1 … 25 m/s² (the Moon to Jupiter). The
+    robustness options' ranges: :class:`~racebench.envs.perturbations.Perturbations`.
 
     Version history (the ids keep the users' ``-v0`` until racebench 1.0; every evaluation record carries the
     outcome version :data:`~racebench.envs.registration.ENV_VERSION` instead, and results of two versions are
@@ -158,7 +163,8 @@ class RaceEnv(gym.Env):
     * v0, outcome version 3: obstacles stand in a strip along each leg, tuned per track so that the share within
       0.5 m and 1.0 m of the racing line matches the authors' released scenes (``obstacle_placement="band"``;
       version 2's placement is ``"box"``); every id's scenes changed. Added without changing outcomes at the
-      defaults: ``start_mode="points"`` (the paper's training starts, at rest).
+      defaults: ``start_mode="points"`` (the paper's training starts, at rest); the robustness options and the
+      ``RaceObs-*-{Latency,Latency30ms,Control30Hz,DepthNoise,Mass,Thrust,Drag,Wind,CameraTilt,StateNoise}-v0`` ids.
     * v0, outcome version 2: every touch is a crash (swept-sphere contact from exact geometry at every physics
       substep, no Bullet collision response; ``crash_reason`` names the gate or obstacle), and a gate crossed on
       a substep that touched its frame is not passed. Since then, without changing any outcome:
@@ -190,6 +196,11 @@ class RaceEnv(gym.Env):
         gate_shift_z: float | None = None,
         depth_format: str = "float32",
         obstacle_placement: str = "band",
+        command_delay: float = 0.0,
+        wind_gust_std: float = 0.0,
+        camera_tilt: float = 0.0,
+        state_noise: float = 0.0,
+        depth_model: str = "gaussian",
     ) -> None:
         super().__init__()
         for name, value, choices in (
@@ -203,8 +214,8 @@ class RaceEnv(gym.Env):
         for name, value in (("control_freq", control_freq), ("physics_freq", physics_freq)):
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise ValueError(f"{name} must be a positive int, got {value!r}")
-        if physics_freq % control_freq:
-            raise ValueError(f"physics_freq ({physics_freq}) must be a multiple of control_freq ({control_freq})")
+        if control_freq > physics_freq:
+            raise ValueError(f"control_freq ({control_freq}) must be at most physics_freq ({physics_freq})")
         check_int("physics_freq", physics_freq, MIN_PHYSICS_FREQ, MAX_PHYSICS_FREQ, unit="Hz")
         check_real("desired_speed", desired_speed, 0.0, MAX_DESIRED_SPEED, unit="m/s", low_open=True)
         check_real("max_episode_time", max_episode_time, 0.0, MAX_EPISODE_TIME, unit="s", low_open=True)
@@ -247,6 +258,8 @@ class RaceEnv(gym.Env):
             placement=obstacle_placement,
         )
         self.camera = DepthCamera(noise_std=depth_noise_std)
+        self.perturbations = Perturbations(physics_freq, command_delay, wind_gust_std, camera_tilt, state_noise,
+                                           depth_model)  # fmt: skip
         self.renderer = renderer
         self.raycaster = None
         if renderer == "raycast":
@@ -259,7 +272,7 @@ class RaceEnv(gym.Env):
         self.desired_speed = float(desired_speed)
         self.control_freq = control_freq
         self.physics_freq = physics_freq
-        self.substeps = physics_freq // control_freq
+        self.substeps = physics_freq // control_freq  # per control step; with a remainder, see _ticks_of_step
         self.dt = 1.0 / physics_freq
         self.max_steps = int(round(max_episode_time * control_freq))
         # "human" only where a display is (racebench.envs.render_modes): check_env tries every listed mode
@@ -271,7 +284,6 @@ class RaceEnv(gym.Env):
             spaces.Dict({"state": state_space(), "depth": depth}) if obs_mode == "vision" else state_space()
         )
         self.sim = Simulation(self.track, self.params, physics_freq, gui=render_mode == "human")
-        self._frame_due = 0.0  # human mode: wall-clock time (time.monotonic) at which the next frame is due
         self.scene: Scene | None = None  # geometry of the current episode (plain data)
         self.layout: Scene | None = None  # when set, every reset uses its gates and obstacles (set_layout)
         self.drone: DroneState | None = None  # current kinematic state of the drone
@@ -324,6 +336,7 @@ class RaceEnv(gym.Env):
         self.sim.load_scene(scene)
         self.sim.reset_drone(scene.start_position, scene.start_yaw, velocity)
         self.quad.reset(hover=True)
+        self.perturbations.reset(self.np_random, self.params.max_thrust * (self.params.hover_action + 1.0) / 2.0)
         self.drone = self.sim.drone_state()
         self.next_gate = self.start_gate
         self.steps = 0
@@ -371,11 +384,17 @@ class RaceEnv(gym.Env):
         start_pos = raw[0]
         passed = 0
         crash = None
-        for _ in range(self.substeps):
+        perturb = self.perturbations if self.perturbations.per_tick else None
+        ticks = self._ticks_of_step(self.steps)
+        for _ in range(ticks):
             pos, quat, vel, ang = raw
             # Rate loop, motors and drag (compiled), then PyBullet integrates; the drone has no collision
             # response there: any touch along this substep's path is a crash (racebench.sim.collision).
-            force, torque = wrench(quat, vel, ang, thrust_cmd, rate_cmd, dt)
+            if perturb is None:
+                force, torque = wrench(quat, vel, ang, thrust_cmd, rate_cmd, dt)
+            else:  # command delay and wind: the command of some ticks ago, drag on the air-relative velocity
+                thrust_now, rate_now, air_vel = perturb.tick(thrust_cmd, rate_cmd, vel, dt)
+                force, torque = wrench(quat, air_vel, ang, thrust_now, rate_now, dt)
             raw = step_raw(force, torque, pos)
             self.ticks += 1
             new_pos = raw[0]
@@ -394,6 +413,7 @@ class RaceEnv(gym.Env):
                     break
         self.drone = DroneState.from_raw(raw)
         self.steps += 1
+        self.perturbations.control_step(ticks * dt)
         self.crash_reason = crash
         (px, py, pz), _, (vx, vy, vz), _ = raw
         r0, r3 = self.drone.rotation.item(0), self.drone.rotation.item(3)  # R[0, 0], R[1, 0]
@@ -462,6 +482,12 @@ class RaceEnv(gym.Env):
             raise ValueError(f"layout has {len(layout.gates)} gates, the track has {len(self.track.gates)}")
         self.layout = layout
 
+    def _ticks_of_step(self, step: int) -> int:
+        """Physics ticks of control step ``step``: the action holds from the first tick at or after ``step /
+        control_freq`` s to the next (zero-order hold; ``substeps`` each when ``control_freq`` divides the physics
+        rate, else e.g. 6, 7, 7 at 30 Hz on 200 Hz)."""
+        return (step + 1) * self.physics_freq // self.control_freq - step * self.physics_freq // self.control_freq
+
     @property
     def time(self) -> float:
         """Simulated time since reset, s."""
@@ -469,7 +495,7 @@ class RaceEnv(gym.Env):
 
     # ---------------------------------------------------------- observation
     def _state_vector(self) -> np.ndarray:
-        pos, quat, rot, vel, ang = self.drone
+        pos, quat, rot, vel, ang = self.perturbations.estimated(*self.drone)
         gates = self.scene.gates
         n = len(gates)
         if self.track.closed_loop:
@@ -496,10 +522,14 @@ class RaceEnv(gym.Env):
 
     def depth_image(self) -> np.ndarray:
         """Metric depth (m) seen by the onboard camera now, shape (64, 64), from the chosen ``renderer``."""
-        pos, _, rot, _, _ = self.drone
+        pos, rot = self.drone.position, self.camera_rotation()
         if self.raycaster is not None:
             return self.raycaster.render_one(self.scene, pos, rot)
         return self.camera.depth(self.sim.client, pos, rot)
+
+    def camera_rotation(self) -> np.ndarray:
+        """The depth camera's body→world rotation now: the body's, turned by a mounting error if ``camera_tilt``."""
+        return self.perturbations.camera_rotation(self.drone.rotation)
 
     def observation(self, depth: np.ndarray | None = None) -> Any:
         """The observation of the current state; ``depth`` (metric, ``(64, 64)``) if it was rendered already.
@@ -511,7 +541,7 @@ class RaceEnv(gym.Env):
             return state
         if depth is None:
             depth = self.depth_image()
-        image = self.camera.normalise(depth, self.np_random)
+        image = self.perturbations.normalise(self.camera, depth, self.np_random)
         if self.depth_format == "uint8":
             image = depth_to_uint8(image)
         return {"state": state, "depth": image}
@@ -536,28 +566,6 @@ class RaceEnv(gym.Env):
         if self.lap_time is not None:
             info["lap_time"] = self.lap_time
         return info
-
-    # ------------------------------------------------------------ rendering
-    def render(self) -> np.ndarray | None:
-        """A 320×240 RGB chase-camera image (``render_mode="rgb_array"``); in ``"human"`` mode the GUI's camera
-        follows the drone and the call waits until the frame is due at real time (``None`` is returned)."""
-        if self.render_mode == "human" and self.scene is not None:
-            self._render_human()
-            return None
-        if self.render_mode != "rgb_array" or self.scene is None:
-            return None
-        return self.sim.chase_image(self.drone.position, self.drone.rotation)
-
-    def _render_human(self) -> None:
-        """Point the GUI's camera at the drone from behind, then wait until this frame is due at real time."""
-        pos, _, rot, _, _ = self.drone
-        yaw = math.degrees(math.atan2(rot[1, 0], rot[0, 0]))
-        # PyBullet's debug camera looks along +y at yaw 0: yaw - 90 puts it behind a drone heading along yaw.
-        self.sim.client.resetDebugVisualizerCamera(2.5, yaw - 90.0, -20.0, pos.tolist())
-        now = time.monotonic()
-        if self._frame_due > now:
-            time.sleep(self._frame_due - now)
-        self._frame_due = max(now, self._frame_due) + 1.0 / self.metadata["render_fps"]
 
     def close(self) -> None:
         """Release the PyBullet client; the env cannot be used afterwards."""

@@ -41,6 +41,7 @@ import numpy as np
 
 from racebench.envs.env import RaceEnv
 from racebench.envs.registration import ENV_KWARGS
+from racebench.sim.disturbances import DrydenWind
 from racebench.sim.quadrotor import QuadrotorParams
 from racebench.sim.track import Gate, Track, load_track
 from racebench.sim.track_generator import START_SPREAD, TRACK_SOURCES, shortest_lap
@@ -122,17 +123,26 @@ def lap_time_lower_bound(
     gate_shift: float = 0.0,
     gate_shift_z: float | None = None,
     physics_freq: int = 200,
+    max_wind: float = 0.0,
 ) -> float:
     """Lap time (s) below which no lap of ``track`` can be flown by the airframe ``params`` (module docstring): a whole
-    number of physics ticks; a lap of exactly this time is possible as far as the bound can tell."""
-    return _geometry_bound(*lap_geometry(track, gate_shift, gate_shift_z), params or QuadrotorParams(), physics_freq)
+    number of physics ticks; a lap of exactly this time is possible as far as the bound can tell.
+
+    ``max_wind`` (m/s): the largest wind speed. Drag on the air-relative velocity can then do positive work, but only
+    on a body axis where the drone is slower than the wind, and there ``f_i v_i ≤ k_i w² |v_i|``: in all at most
+    ``√3 k_max w² |v|``, which the bound counts as extra thrust ``√3 k_max w² / m``.
+    """
+    geometry = lap_geometry(track, gate_shift, gate_shift_z)
+    return _geometry_bound(*geometry, params or QuadrotorParams(), physics_freq, max_wind)
 
 
-def _geometry_bound(length: float, height: float, params: QuadrotorParams, physics_freq: int) -> float:
+def _geometry_bound(
+    length: float, height: float, params: QuadrotorParams, physics_freq: int, max_wind: float = 0.0
+) -> float:
     """The lap-time bound (s) of a lap at least ``length`` m long starting at most ``height`` m up."""
     drag = max(params.drag_coefficients) / params.mass
-    ticks = min_ticks_from_rest(length, height, params.max_thrust / params.mass, params.gravity, 1.0 / physics_freq,
-                                drag)  # fmt: skip
+    accel = (params.max_thrust + math.sqrt(3.0) * max(params.drag_coefficients) * max_wind**2) / params.mass
+    ticks = min_ticks_from_rest(length, height, accel, params.gravity, 1.0 / physics_freq, drag)
     return ticks / physics_freq
 
 
@@ -148,12 +158,14 @@ def env_lap_time_bound(env_id: str) -> float:
     kwargs = {**defaults, **ENV_KWARGS[env_id]}
     quad = kwargs["quadrotor"]
     params = quad if isinstance(quad, QuadrotorParams) else QuadrotorParams(**(quad or {}))
+    wind = DrydenWind(kwargs["wind_gust_std"]).max_speed
     if kwargs["track"] in TRACK_SOURCES:
         spread = (START_SPREAD,) * 3 if kwargs["start_spread"] is None else tuple(kwargs["start_spread"])
         geometry = shortest_lap(spread, kwargs["gate_shift"], kwargs["gate_shift_z"])
-        return _geometry_bound(*geometry, params, kwargs["physics_freq"])
+        return _geometry_bound(*geometry, params, kwargs["physics_freq"], wind)
     track = load_track(kwargs["track"])
     if kwargs["start_spread"] is not None:
         spread = np.asarray(kwargs["start_spread"], dtype=float)
         track = dataclasses.replace(track, start=dataclasses.replace(track.start, spread=spread))
-    return lap_time_lower_bound(track, params, kwargs["gate_shift"], kwargs["gate_shift_z"], kwargs["physics_freq"])
+    return lap_time_lower_bound(track, params, kwargs["gate_shift"], kwargs["gate_shift_z"], kwargs["physics_freq"],
+                                wind)  # fmt: skip

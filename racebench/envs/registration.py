@@ -4,7 +4,9 @@
 ``-Density{2,3,4,5}-v0``: obstacles per 2 gates (paper Table IV, top);
 ``-GateShift{0.3,0.5,0.7,1.0}-v0``: gates shifted ±δ m per axis at density 3 (Table IV, bottom);
 ``-Level{1,2,3}-v0``: the curriculum (Sec. III-C.1): 1 = no obstacles, low v_d; 2 = obstacles, low v_d;
-3 = higher v_d, r_vd removed, denser obstacles.
+3 = higher v_d, r_vd removed, denser obstacles;
+``-{Latency,Latency30ms,Control30Hz,DepthNoise,Mass,Thrust,Drag,Wind,CameraTilt,StateNoise}-v0``: the robustness
+suite, the main id with one sim-to-real gap (:data:`racebench.envs.perturbations.ROBUSTNESS`, ``docs/robustness.md``).
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
+
+from racebench.envs.perturbations import ROBUSTNESS
 
 #: Version of the environments' outcomes. Before racebench 1.0 the ids stay ``-v0``; every evaluation record
 #: carries this number instead, and any change that can change an episode's outcome (physics, collision or gate
@@ -25,10 +29,11 @@ ENV_VERSION = 3
 TRACK_IDS: dict[str, str] = {"S": "S", "J": "J", "Circle": "Circle"}
 DENSITIES: tuple[int, ...] = (2, 3, 4, 5)
 GATE_SHIFTS: tuple[str, ...] = ("0.3", "0.5", "0.7", "1.0")
-#: ``spec.max_episode_steps`` of every id: ``RaceEnv``'s own time limit at its defaults (max_episode_time 15 s ×
-#: control_freq 50 Hz; a test keeps them equal). ``gym.make`` wraps the env in a ``TimeLimit`` of this many steps,
-#: which truncates on the same step as the env does, so nothing changes at the defaults; an env made with a longer
-#: ``max_episode_time`` or a higher ``control_freq`` needs ``gym.make(..., max_episode_steps=N)`` as well.
+#: ``spec.max_episode_steps`` of every id at 50 Hz: ``RaceEnv``'s own time limit at its defaults (max_episode_time 15 s
+#: × control_freq 50 Hz; a test keeps them equal; :func:`max_episode_steps` scales it to another control rate).
+#: ``gym.make`` wraps the env in a ``TimeLimit`` of this many steps, which truncates on the same step as the env does,
+#: so nothing changes at the defaults; an env made with a longer ``max_episode_time`` or a higher ``control_freq``
+#: needs ``gym.make(..., max_episode_steps=N)`` as well.
 MAX_EPISODE_STEPS = 750
 LOW_SPEED = 3.0  # m/s, curriculum levels 1-2
 HIGH_SPEED = 8.0  # m/s, level 3 and evaluation
@@ -51,7 +56,14 @@ def variants() -> dict[str, dict[str, Any]]:
             table[f"RaceObs-{key}-GateShift{s}-v0"] = {**base, "gate_shift": float(s)}
         for level, kwargs in CURRICULUM.items():
             table[f"RaceObs-{key}-Level{level}-v0"] = {**base, **kwargs}
+        for name, kwargs in ROBUSTNESS.items():
+            table[f"RaceObs-{key}-{name}-v0"] = {**base, **kwargs}
     return table
+
+
+def max_episode_steps(kwargs: dict[str, Any]) -> int:
+    """The time limit in control steps of an id with ``kwargs``: 15 s at its control rate (750 at 50 Hz)."""
+    return MAX_EPISODE_STEPS * int(kwargs.get("control_freq", 50)) // 50
 
 
 ENV_KWARGS: dict[str, dict[str, Any]] = variants()
@@ -75,6 +87,6 @@ def register_envs() -> None:
                 id=env_id,
                 entry_point=ENTRY_POINTS.get(env_id, "racebench.envs.env:RaceEnv"),
                 vector_entry_point="racebench.envs.vector:RaceVectorEnv",  # gym.make_vec: batched, worker processes
-                max_episode_steps=MAX_EPISODE_STEPS,
+                max_episode_steps=max_episode_steps(kwargs),
                 kwargs=kwargs,
             )

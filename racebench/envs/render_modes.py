@@ -7,6 +7,11 @@ machine offers, and the error for a mode it refuses lists the same ones.
 
 from __future__ import annotations
 
+import math
+import time
+
+import numpy as np
+
 from racebench.sim.bullet import display_available
 
 #: Every render mode of RaceEnv, wherever it runs.
@@ -41,3 +46,34 @@ def check_render_mode(render_mode: str | None) -> None:
         f"render_mode must be None or one of {offered} (this machine's), got {render_mode!r}"
         + "".join(f"; {reason}" for reason in why)
     )
+
+
+class ChaseRendering:
+    """``RaceEnv.render``: a chase-camera image, or PyBullet's GUI camera following the drone at real time.
+
+    A mixin of :class:`~racebench.envs.env.RaceEnv`; it uses the env's ``render_mode``, ``scene``, ``drone``,
+    ``sim`` and ``metadata["render_fps"]``.
+    """
+
+    _frame_due = 0.0  # human mode: wall-clock time (time.monotonic) at which the next frame is due
+
+    def render(self) -> np.ndarray | None:
+        """A 320×240 RGB chase-camera image (``render_mode="rgb_array"``); in ``"human"`` mode the GUI's camera
+        follows the drone and the call waits until the frame is due at real time (``None`` is returned)."""
+        if self.render_mode == "human" and self.scene is not None:
+            self._render_human()
+            return None
+        if self.render_mode != "rgb_array" or self.scene is None:
+            return None
+        return self.sim.chase_image(self.drone.position, self.drone.rotation)
+
+    def _render_human(self) -> None:
+        """Point the GUI's camera at the drone from behind, then wait until this frame is due at real time."""
+        pos, _, rot, _, _ = self.drone
+        yaw = math.degrees(math.atan2(rot[1, 0], rot[0, 0]))
+        # PyBullet's debug camera looks along +y at yaw 0: yaw - 90 puts it behind a drone heading along yaw.
+        self.sim.client.resetDebugVisualizerCamera(2.5, yaw - 90.0, -20.0, pos.tolist())
+        now = time.monotonic()
+        if self._frame_due > now:
+            time.sleep(self._frame_due - now)
+        self._frame_due = max(now, self._frame_due) + 1.0 / self.metadata["render_fps"]

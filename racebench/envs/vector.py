@@ -111,7 +111,7 @@ class EnvBatch:
             depth = self.raycaster.render(
                 [e.scene for e in envs],
                 np.stack([e.drone.position for e in envs]),
-                np.stack([e.drone.rotation for e in envs]),
+                np.stack([e.camera_rotation() for e in envs]),
             )
             observations = [e.observation(d) for e, d in zip(envs, depth, strict=True)]
         else:

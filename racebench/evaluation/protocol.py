@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 import gymnasium as gym
 
+from racebench.envs.perturbations import ROBUSTNESS
 from racebench.envs.registration import DENSITIES, GATE_SHIFTS
 
 SEED_PROTOCOL = 1
@@ -27,6 +28,13 @@ SUITES: dict[str, list[str]] = {
     "gates": [f"RaceObs-{t}-GateShift{s}-v0" for s in GATE_SHIFTS for t in TRACK_ORDER],
 }
 SUITES["paper"] = SUITES["main"] + SUITES["density"] + SUITES["gates"]
+# The robustness suite (docs/robustness.md): per track its main id and the nine perturbations of it, which fly the
+# main id's scenes seed for seed (the pairs of the robustness table); ``robustness`` is all three tracks.
+SUITES.update({f"robustness-{t}": [f"RaceObs-{t}-v0", *(f"RaceObs-{t}-{p}-v0" for p in ROBUSTNESS)]
+               for t in TRACK_ORDER})  # fmt: skip
+SUITES["robustness"] = SUITES["main"] + [i for t in TRACK_ORDER for i in SUITES[f"robustness-{t}"][1:]]
+#: The suite's 27 perturbation ids (the robustness suite without its main ids).
+PERTURBATION_IDS: frozenset[str] = frozenset(SUITES["robustness"]) - frozenset(SUITES["main"])
 SEED_SET = "public"
 
 
@@ -39,7 +47,8 @@ def eval_seeds(episodes: int) -> list[int]:
 
 
 def resolve_envs(names: Sequence[str]) -> list[str]:
-    """Expand suite names (``main``, ``density``, ``gates``, ``paper``) and check every env id exists."""
+    """Expand suite names (``main``, ``density``, ``gates``, ``paper``, ``robustness``, ``robustness-<track>``) and
+    check every env id exists."""
     ids: list[str] = []
     for name in names:
         for env_id in SUITES.get(name, [name]):

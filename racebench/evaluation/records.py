@@ -215,7 +215,7 @@ def env_facts(env_id: str) -> dict[str, Any]:
         "gates": most_gates(kwargs["track"]),  # a track source's episodes: see episode_facts
         "control_dt": 1.0 / control_freq,
         "physics_freq": physics_freq,
-        "substeps": physics_freq // control_freq,
+        "control_freq": control_freq,
         "max_steps": int(round(float(kwargs["max_episode_time"]) * control_freq)),
         "lap_time_bound": env_lap_time_bound(env_id),
     }
@@ -289,9 +289,11 @@ def validate_record(record: Any, file_name: str | None = None) -> dict[str, Any]
         if record["crashed"] or reason or error:
             raise bad("success with a crash or an error")
         # The env stamps the lap at the physics tick that crossed the last gate: ticks / physics_freq, exactly.
-        freq, substeps = facts["physics_freq"], facts["substeps"]
+        freq, control = facts["physics_freq"], facts["control_freq"]
         ticks = round(lap * freq) if isinstance(lap, (int, float)) and math.isfinite(lap) else None
-        if ticks is None or abs(lap * freq - ticks) > 1e-6 or not (steps - 1) * substeps < ticks <= steps * substeps:
+        # control step k holds ticks (k·freq // control, (k + 1)·freq // control]: RaceEnv._ticks_of_step
+        window = ((steps - 1) * freq // control, steps * freq // control)
+        if ticks is None or abs(lap * freq - ticks) > 1e-6 or not window[0] < ticks <= window[1]:
             raise bad(
                 f"success lap_time {lap} is not a physics tick (1/{freq} s) of its last control step "
                 f"({steps} steps of {facts['control_dt']} s)"

@@ -197,7 +197,7 @@ def run_lockstep(
             caster = casters.setdefault(id(camera), BatchDepthRenderer(camera))
             depth = caster.render(
                 [r.scene for r in raws], np.stack([r.drone.position for r in raws]),
-                np.stack([r.drone.rotation for r in raws]),
+                np.stack([r.camera_rotation() for r in raws]),
             )  # fmt: skip
             for i, d in zip(cast, depth, strict=True):
                 slots[i].obs = slots[i].raw.observation(d)

@@ -23,6 +23,7 @@ from racebench.leaderboard.entries import (
     summarize_cells,
 )
 from racebench.leaderboard.ranking import TRACK_LABELS, Row, _esc, _lap_html, _sr_html, _tier_badge, aggregate
+from racebench.leaderboard.robustness import robustness_data, robustness_section_html
 from racebench.leaderboard.unseen import NO_POLICY, UNSEEN_RANKED_EPISODES, UnseenRow, unseen_cell
 from racebench.reporting import video
 from racebench.reporting.plots import plot_track_3d
@@ -71,6 +72,7 @@ def _entry_data(row: Row) -> dict[str, Any]:
         "verification_refused": row.refusal,
         "aggregate": aggregate(row.cells, row.outcomes()),
         "unseen": _unseen_data(entry),
+        "robustness": robustness_data(row.robustness),
     }
 
 
@@ -184,6 +186,8 @@ def _entry_page(row: Row, media: str = "") -> str:
         f'<p class="lead">{_esc(meta["description"])}</p>\n<p>Tier: {row.tier}, because it is {why}.</p>\n'
         f"<h2>Metadata</h2>\n<table>{rows}</table>\n<h2>Policies</h2>\n{_policies_table(entry)}\n"
         + _verification_html(row)
+        + "\n"
+        + robustness_section_html(row.robustness)
         + '\n<h2>Every evaluated cell</h2>\n<p class="muted">Each policy\'s records: own track or another one'
         " (cross-track generalisation). SR: success rate, 95 % Wilson interval, successes/episodes. Lap time over"
         " successful laps.</p>\n"

@@ -4,6 +4,7 @@ aggregate, improvement and paper tables as HTML.
 
 from __future__ import annotations
 
+import functools
 import html
 import math
 from collections.abc import Sequence
@@ -31,6 +32,7 @@ from racebench.leaderboard.entries import (
     Entry,
     summarize_cells,
 )
+from racebench.leaderboard.robustness import EntryRobustness, entry_robustness, robustness_column_html
 from racebench.leaderboard.signing import VERIFIED_FILE, SignatureError, VerifiedResult
 from racebench.leaderboard.unseen import NO_POLICY, UNSEEN_RANKED_EPISODES, unseen_cell, unseen_rows
 from racebench.reporting.tables import best_separated
@@ -114,6 +116,11 @@ class Row:
         laps = [self.cells[i].lap_time_mean if i in self.cells else math.nan for i in MAIN_IDS]
         lap = math.nan if any(math.isnan(x) for x in laps) else sum(laps) / len(laps)
         return sum(rates) / len(rates), lap
+
+    @functools.cached_property
+    def robustness(self) -> EntryRobustness:
+        """Its robustness on the suite (:mod:`racebench.leaderboard.robustness`): shown, never part of :meth:`key`."""
+        return entry_robustness(self.entry, RANKED_EPISODES)
 
     def outcomes(self) -> list[dict[str, Any]]:
         """Per-episode outcomes of its cells (for the bootstrap and P(improvement): order does not matter)."""
@@ -221,6 +228,7 @@ def _ranking_table(table_id: str, rows: list[Row], ranked: bool, bold: dict[str,
             lap = f"<br><small>lap {cell.lap_time_mean:.2f} s</small>" if cell and cell.lap_times else ""
             tds.append(f'<td class="{klass}">{_sr_html(cell)}{lap}</td>')
         tds.append(f'<td class="num">{_cross_html(entry)}</td>')
+        tds.append(f'<td class="num">{robustness_column_html(row.robustness)}</td>')
         tds.append(f"<td>{_teacher_html(entry)}</td>")
         tds.append(f'<td class="num budget">{_budget_html(entry)}</td>')
         seeds = ", ".join(sorted({c.seed_set for c in row.cells.values()})) or "–"
@@ -230,7 +238,8 @@ def _ranking_table(table_id: str, rows: list[Row], ranked: bool, bold: dict[str,
     return (
         f'<table class="ranking" id="{table_id}">\n<tr><th>#</th><th>method</th>'
         "<th>rank key <small>(mean own-track SR, then lap)</small></th>"
-        f"{head}<th>cross-track SR <small>(other tracks, not ranked)</small></th><th>privileged teacher</th>"
+        f"{head}<th>cross-track SR <small>(other tracks, not ranked)</small></th>"
+        "<th>robustness <small>(perturbed / nominal SR, not ranked)</small></th><th>privileged teacher</th>"
         "<th>training budget</th><th>sees, policy files</th><th>SR unseen tracks <small>(own ranking below)</small>"
         "</th></tr>\n" + "\n".join(body) + "\n</table>"
     )

@@ -28,6 +28,7 @@ from typing import Any
 
 from racebench.envs.registration import ENV_VERSION
 from racebench.evaluation.evaluator import Evaluator
+from racebench.evaluation.protocol import PERTURBATION_IDS
 from racebench.evaluation.records import read_folder
 from racebench.evaluation.seeds import salt_sha256
 from racebench.leaderboard.entries import UNSEEN_KEY, Cell, Entry, check_seed_prefixes
@@ -182,10 +183,17 @@ def build_payload(entry: Entry, private_records: Mapping[str, Sequence[dict[str,
 def entry_view(entry: Entry) -> dict[str, Any]:
     """What an entry's page shows beside the verified badge, besides the signed private cells: its metadata
     (description, authors, teacher, what it sees, ...) and each policy line (the public-records policy and its
-    sha256, the ONNX export, the record folders and their records' digests, the training budget)."""
+    sha256, the ONNX export, the record folders and their records' digests, the training budget).
+
+    The records of the robustness suite's perturbation ids (:data:`~racebench.evaluation.protocol.PERTURBATION_IDS`)
+    are left out of the digests: they join an entry's record folders after it is signed (the maintainers evaluate
+    every method on the suite), they are public-seed numbers that are never ranked, and the page shows them as
+    such, not as signed ones. Leaving them out keeps every signature made before the suite existed: without them
+    the view is byte for byte what was signed. They are validated on load like every record (of the policy's
+    sha256, the current env version, the first n seeds)."""
     policies = {}
     for track, policy in sorted(entry.policies.items()):
-        digests = "\n".join(sorted(r["digest"] for r in policy.records))
+        digests = "\n".join(sorted(r["digest"] for r in policy.records if r["env_id"] not in PERTURBATION_IDS))
         policies[track] = {
             "policy": policy.policy, "policy_sha256": policy.sha256, "onnx": policy.onnx,
             "onnx_sha256": policy.onnx_sha256, "records": list(policy.records_dirs),

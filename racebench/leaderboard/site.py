@@ -10,10 +10,11 @@ secret: a verified entry is one whose ``verified.json`` checks against the pinne
 An entry is a method (:mod:`racebench.leaderboard.entries`): each policy is judged on its own track. The **rank
 key**, a visible column, is the mean of the three own-track success rates on the main ids, then the mean of the
 three own-track mean lap times; a method without all three tracks is listed unranked below. Cross-track
-generalisation (per-track policies on the other tracks) is an extra column, never the key. Success rates are
-shown as percentage, 95 % Wilson interval and ``k/n``; a cell is bold only when its interval lies entirely above
-the interval of every other entry of its tier in that column. References (privileged built-ins) are listed for
-scale, never ranked or bold.
+generalisation (per-track policies on the other tracks) is an extra column, never the key, and so is robustness
+(:mod:`racebench.leaderboard.robustness`: success under the robustness suite's perturbations relative to nominal).
+Success rates are shown as percentage, 95 % Wilson interval and ``k/n``; a cell is bold only when its interval lies
+entirely above the interval of every other entry of its tier in that column. References (privileged built-ins) are
+listed for scale, never ranked or bold.
 
 Aggregate statistics: the rank key with a 95 % percentile interval from :func:`scipy.stats.bootstrap` resampling
 episodes within each track (stratified), and rliable's probability of improvement between neighbours of a tier.
@@ -68,6 +69,7 @@ td.budget { white-space: normal; min-width: 6rem; }  /* the hardware line would 
 td.key { font-weight: 600; background: #f3f0ff; }
 table.ranking td:nth-child(2) { min-width: 18rem; }
 td.best { font-weight: 700; background: #eafbea; }
+td.drop { font-weight: 700; background: #ffebe9; }
 small, .muted { color: #57606a; }
 .tier { display: inline-block; padding: 0 0.45rem; border-radius: 0.6rem; font-size: 0.8rem; color: #fff; }
 .tier-verified { background: #1a7f37; } .tier-self-reported { background: #9a6700; }
@@ -162,7 +164,10 @@ def build_site(
         " policy for all three, each flown on its <b>own</b> track. <b>Rank key</b> (its own column): the mean of"
         " the three own-track success rates, then the mean of the three own-track mean lap times. A method without"
         " all three tracks is listed unranked below its tier. Cross-track success (a per-track policy on the other"
-        " tracks) is shown, never ranked. SR cells: percentage, 95 % Wilson interval, successes/episodes."
+        " tracks) is shown, never ranked, and so is <b>robustness</b>: per track the mean success rate under the nine"
+        " perturbations of the robustness suite over the nominal success rate on the same scenes (public seeds),"
+        " averaged over the tracks where all nine were flown and the nominal rate is above 0 (each entry's page"
+        " has the table). SR cells: percentage, 95 % Wilson interval, successes/episodes."
         " <b>Bold</b> only where a method's interval lies entirely above every other method's of its tier in"
         " that column. The held-out generated tracks have their own ranking (Unseen tracks, below the tiers).</p>\n"
         + "\n".join(sections) + unseen_section(entries)

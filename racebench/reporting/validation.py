@@ -1,16 +1,18 @@
 """Validation learning curves: a campaign run's checkpoints flown on validation scenes, and the figure of all runs.
 
 The paper's Fig. 5 plots training reward; training success alone is measured at a different curriculum level per
-config. So every 1 M steps a run's checkpoint is flown on its track's main id over validation scenes (seeds
-``VALIDATION_SEED_BASE + i``, disjoint from training and evaluation seeds) with deterministic actions and ray-cast
-depth (:func:`validation_curve`), and :func:`learning_curves` draws every committed run's points (``racebench
-paper-tables`` calls it).
+config. So at every multiple of its sweep's ``validation_every`` (1 M steps in campaign 1, 0.5 M in campaign 2) a
+run's checkpoint is flown on its track's main id over validation scenes (seeds ``VALIDATION_SEED_BASE + i``,
+disjoint from training and evaluation seeds) with deterministic actions and ray-cast depth
+(:func:`validation_curve`), and :func:`learning_curves` draws every committed run's points, each on its own grid
+(``racebench paper-tables`` calls it).
 """
 
 from __future__ import annotations
 
 import json
 import re
+from collections.abc import Collection
 from functools import partial
 from pathlib import Path
 
@@ -131,13 +133,17 @@ def read_promotions(run_dir: Path) -> list[tuple[int, int]]:
     return [(int(p["level"]), int(p["timestep"])) for p in json.loads(path.read_text()).get("promotions", [])]
 
 
-def read_curves(root: Path, campaign: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+def read_curves(
+    root: Path, campaign: Path, only: Collection[str] | None = None
+) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Every campaign run's validation points (``run``, ``config``, ``track``, ``training_seed``, ``step`` and the
-    file's columns) and curriculum promotions (``config``, ``track``, ``training_seed``, ``level``, ``timestep``)."""
+    file's columns) and curriculum promotions (``config``, ``track``, ``training_seed``, ``level``, ``timestep``);
+    with ``only``, of the run folders it names only (a report's committed runs: a run still training has points up
+    to where it stopped, and is drawn once it is finished)."""
     frames, promotions = [], []
     for path in sorted((root / campaign).glob("*-seed*/validation_curve.csv")):
         match = RUN_FOLDER.match(path.parent.name)
-        if match is None:
+        if match is None or (only is not None and path.parent.name not in only):
             continue
         frame = on_grid(pd.read_csv(path))
         ids = {"run": path.parent.name, "config": match["config"], "track": match["track"],
@@ -232,10 +238,14 @@ def learning_curves_figure(curves: pd.DataFrame, promotions: pd.DataFrame, title
 CURVE_FORMATS = ("png", "pdf")
 
 
-def learning_curves(root: Path, out: Path, campaign: Path) -> pd.DataFrame | None:
+def learning_curves(
+    root: Path, out: Path, campaign: Path, only: Collection[str] | None = None, runs: tuple[int, int] | None = None
+) -> pd.DataFrame | None:
     """One CSV (``learning_curves.csv``: every campaign run's validation points, with their grid ``step``) and one
-    figure (``figures/learning_curves.{png,pdf}``, :func:`learning_curves_figure`) of the campaign's runs."""
-    curves, promotions = read_curves(root, campaign)
+    figure (``figures/learning_curves.{png,pdf}``, :func:`learning_curves_figure`) of the campaign's runs (``only``:
+    those run folders, :func:`read_curves`). ``runs`` (committed, planned): a partial campaign's title says how many
+    of its runs are drawn. Each run is drawn on its own validation grid (every 0.5 M or 1 M steps)."""
+    curves, promotions = read_curves(root, campaign, only)
     if curves.empty:
         return None
     atomic_write(out / "learning_curves.csv", curves.to_csv(index=False))
@@ -243,7 +253,8 @@ def learning_curves(root: Path, out: Path, campaign: Path) -> pd.DataFrame | Non
 
     every = sorted({validation_spacing(g["timesteps"]) / 1e6 for _, g in curves.groupby("run")})
     episodes = "/".join(str(n) for n in sorted(curves["episodes"].unique()))
-    title = (f"{Path(campaign).name}: validation success on {episodes} validation scenes per point (every "
+    drawn = "" if runs is None or runs[0] >= runs[1] else f" ({runs[0]} of {runs[1]} runs committed)"
+    title = (f"{Path(campaign).name}{drawn}: validation success on {episodes} validation scenes per point (every "
              f"{'/'.join(f'{e:g}' for e in every)} M steps) and training return")  # fmt: skip
     fig = learning_curves_figure(curves, promotions, title)
     (out / "figures").mkdir(parents=True, exist_ok=True)

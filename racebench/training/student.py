@@ -66,7 +66,7 @@ def observe(caster: BatchDepthRenderer, envs: list[Any], indices: list[int]) -> 
     depth = caster.render(
         [envs[i].scene for i in indices],
         np.stack([envs[i].drone.position for i in indices]),
-        np.stack([envs[i].drone.rotation for i in indices]),
+        np.stack([envs[i].camera_rotation() for i in indices]),
     )
     return [envs[i].observation(d) for i, d in zip(indices, depth, strict=True)]
 
