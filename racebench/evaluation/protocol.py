@@ -28,12 +28,12 @@ SUITES: dict[str, list[str]] = {
     "gates": [f"RaceObs-{t}-GateShift{s}-v0" for s in GATE_SHIFTS for t in TRACK_ORDER],
 }
 SUITES["paper"] = SUITES["main"] + SUITES["density"] + SUITES["gates"]
-# The robustness suite (docs/robustness.md): per track its main id and the nine perturbations of it, which fly the
+# The robustness suite (docs/robustness.md): per track its main id and the ten perturbations of it, which fly the
 # main id's scenes seed for seed (the pairs of the robustness table); ``robustness`` is all three tracks.
 SUITES.update({f"robustness-{t}": [f"RaceObs-{t}-v0", *(f"RaceObs-{t}-{p}-v0" for p in ROBUSTNESS)]
                for t in TRACK_ORDER})  # fmt: skip
 SUITES["robustness"] = SUITES["main"] + [i for t in TRACK_ORDER for i in SUITES[f"robustness-{t}"][1:]]
-#: The suite's 27 perturbation ids (the robustness suite without its main ids).
+#: The suite's 30 perturbation ids (the robustness suite without its main ids).
 PERTURBATION_IDS: frozenset[str] = frozenset(SUITES["robustness"]) - frozenset(SUITES["main"])
 SEED_SET = "public"
 
