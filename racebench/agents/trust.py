@@ -40,7 +40,6 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
         "vision-distill-ppo-Circle/vision-distill-ppo-Circle.zip"
     ),
     "b95ac725bf00271c31b1cb00bb383e29dc1c887d30fe7311e740e4c051d9510f": "vision-distill-ppo-J/vision-distill-ppo-J.zip",
-    "1499eb28f37fe2c3179aea4008452f404ac4c33893779659c6a5b582968e6703": "vision-ppo-J/vision-ppo-J.zip",
     "22caeea1d89e61b0de28e6f3392b8911e94647bd7725c4f162a2f9473e4e8bde": "vision-ppo-Circle/vision-ppo-Circle.zip",
     "1c297ec8d07ba5cdb8b77aacd8be89bd68cc4b43ecd869a1f6a7f4e800aebb12": "state-ppo-S/state-ppo-S.zip",
     "de4138705b1c38955662cd98a4230f8fe281e61abc8834d1dff72dbca0b59b6a": "state-ppo-J/state-ppo-J.zip",
@@ -62,6 +61,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "4731e4e37ff4e05629bdfcc1e076bf2a46a452a504067dd3e0342f3e3bef74e6": "vision-no-gru-J/vision-no-gru-J.zip",
     "6770750ec6407172f0795e4d66e7f5372017332d13d69adfff60a5aa65d210e4": "vision-no-gru-Circle/vision-no-gru-Circle.zip",
     "4c187ca78a7743a3740196b49d42cf0a99c7f435b3b0cd707e09ddf2bc85cdeb": "vision-ppo-S/vision-ppo-S.zip",
+    "bfbdac773bf7c7d9d1d113703f155332b3471c933962c1fdf4d3d8ab10cc65f3": "vision-ppo-J/vision-ppo-J.zip",
 }
 
 
