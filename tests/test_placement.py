@@ -179,3 +179,12 @@ def test_shipped_configs_train_on_the_papers_distribution() -> None:
 def test_every_registered_id_uses_the_band() -> None:
     for env_id, kwargs in ENV_KWARGS.items():
         assert kwargs.get("obstacle_placement", "band") == "band", env_id
+
+
+def test_set_task_keeps_the_placement() -> None:
+    """A curriculum step (set_task) changes density or gate shift, never where obstacles stand."""
+    for placement in ("box", "band"):
+        env = RaceEnv(track="S", obs_mode="state", obstacle_placement=placement)
+        env.set_task(density=2, gate_shift=0.5)
+        assert env.generator.placement == placement and env.generator.density == 2
+        env.close()

@@ -464,6 +464,7 @@ class RaceEnv(ChaseRendering, gym.Env):
                 gate_shift=self.generator.gate_shift if gate_shift is None else gate_shift,
                 gate_shift_z=shift_z,
                 drone_radius=self.params.collision_radius,
+                placement=self.generator.placement,
             )
             self._gate_shift_z = shift_z
         if desired_speed is not None:
