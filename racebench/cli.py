@@ -514,7 +514,7 @@ def _compare(args: argparse.Namespace) -> int:
 def _export_policy(args: argparse.Namespace) -> int:
     """``racebench export-policy``: the checkpoint's policy without optimizer state, checked to act the same."""
     from racebench.agents.base import AgentLoadError
-    from racebench.agents.export import export_policy
+    from racebench.agents.export import check_policy_export, export_policy
     from racebench.agents.loading import SB3Agent
 
     source, out = Path(args.checkpoint), Path(args.out)
@@ -528,13 +528,11 @@ def _export_policy(args: argparse.Namespace) -> int:
         if beside.exists() and (stats is None or beside.read_bytes() != stats.read_bytes()):
             raise ValueError(f"{str(beside)!r} would be read as this policy's observation statistics; remove it")
         out.parent.mkdir(parents=True, exist_ok=True)
-        export_policy(agent.model, out)
+        export_policy(agent.model, out, keep_critic=args.keep_critic)
         if stats is not None:
             shutil.copyfile(stats, beside)
         copy = SB3Agent(out, trust_code=True)
-        theirs, ours = agent.model.policy.state_dict(), copy.model.policy.state_dict()
-        if theirs.keys() != ours.keys() or not all(theirs[k].equal(ours[k]) for k in theirs):
-            raise ValueError(f"the weights read back from {str(out)!r} differ from the checkpoint's")
+        check_policy_export(agent.model, copy.model, str(out))
     except (AgentLoadError, OSError, ValueError) as exc:
         raise SystemExit(f"racebench export-policy: {exc}") from exc
     print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, {source.stat().st_size / 1e6:.1f} MB before); "

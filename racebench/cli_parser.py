@@ -390,6 +390,10 @@ def build_parser() -> argparse.ArgumentParser:
     p_export.add_argument("checkpoint", help="SB3 / sb3-contrib .zip")
     p_export.add_argument("--out", required=True, help="the policy-only .zip to write")
     p_export.add_argument("--trust-code", action="store_true", help="allow a checkpoint outside the shipped ones")
+    p_export.add_argument(
+        "--keep-critic", action="store_true",
+        help="keep the critic's own weights (default: zeros; no action reads them; training cannot resume from it)",
+    )  # fmt: skip
     _add_vecnormalize_options(p_export)
 
     p_bench = sub.add_parser("bench", help="throughput: depth frames/s of both renderers, env steps/s, memory")

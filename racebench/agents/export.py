@@ -25,27 +25,80 @@ TRAINING_ONLY_ATTRIBUTES = (
 )
 
 
-def export_policy(model: Any, path: str | Path) -> Path:
+#: Parameter-name prefixes of an SB3 / sb3-contrib actor-critic's critic: its features extractor (when not the
+#: actor's), its GRU / LSTM or linear layer, its MLP and its value head. No action reads them.
+CRITIC_PREFIXES: tuple[str, ...] = (
+    "lstm_critic.", "critic.", "mlp_extractor.value_net.", "value_net.", "vf_features_extractor.",
+)  # fmt: skip
+
+
+def critic_parameter(name: str) -> bool:
+    """Whether a policy parameter belongs to the critic only (its GRU, MLP and head); all else acts."""
+    return name.startswith(CRITIC_PREFIXES)
+
+
+def critic_only_tensors(policy: Any) -> dict[str, Any]:
+    """The critic's parameters that no actor module shares, by state-dict name (a shared features extractor
+    appears under the critic's name too, and stays out)."""
+    named = list(policy.named_parameters(remove_duplicate=False))
+    acting = {id(parameter) for name, parameter in named if not critic_parameter(name)}
+    return {name: parameter for name, parameter in named if critic_parameter(name) and id(parameter) not in acting}
+
+
+def export_policy(model: Any, path: str | Path, keep_critic: bool = False) -> Path:
     """Save an SB3 model as a policy-only checkpoint: the weights and what loading and acting need, with the
     optimizer's state (Adam's moments: twice the weights) and :data:`TRAINING_ONLY_ATTRIBUTES` left out.
 
-    It loads like any SB3 save and acts exactly as ``model`` does; training resumed from it starts with fresh
-    Adam moments. ``model`` itself is left as it was.
+    Unless ``keep_critic``, the critic's own weights (:func:`critic_only_tensors`, about half of a vision policy)
+    are saved as zeros and the model's ``critic_stripped`` attribute is saved true: no action reads them, and
+    zeros cost next to nothing in git's compressed history. It loads like any SB3 save and acts exactly as
+    ``model`` does; training cannot resume from it (``train`` and ``init_from`` refuse such a file), and without
+    the critic a resumed run's Adam moments would be fresh anyway. ``model`` itself is left as it was.
     """
+    import torch
+
     path = Path(path)
     if path.suffix != ".zip":
         raise ValueError(f"a policy-only checkpoint is an SB3 .zip, not {str(path)!r}")
     optimizer = model.policy.optimizer
     # A fresh optimizer of the same kind and settings: its state dict is the settings alone.
     model.policy.optimizer = type(optimizer)(model.policy.parameters(), **optimizer.defaults)
+    critic = {} if keep_critic else critic_only_tensors(model.policy)
+    kept = {name: tensor.detach().clone() for name, tensor in critic.items()}
+    stripped_before = model.__dict__.get("critic_stripped")
     partial = path.with_name(f".{path.stem}.partial.zip")  # renamed into place: never a half-written policy
     try:
+        with torch.no_grad():
+            for tensor in critic.values():
+                tensor.zero_()
+        if critic:
+            model.critic_stripped = True  # saved with the model's attributes, read back by load
         model.save(partial, exclude=[name for name in TRAINING_ONLY_ATTRIBUTES if name in model.__dict__])
         os.replace(partial, path)
     finally:
+        with torch.no_grad():
+            for name, tensor in critic.items():
+                tensor.copy_(kept[name])
+        if critic and stripped_before is None:
+            del model.critic_stripped
+        elif critic:
+            model.critic_stripped = stripped_before
         model.policy.optimizer = optimizer
         partial.unlink(missing_ok=True)
     return path
+
+
+def check_policy_export(model: Any, exported: Any, name: str = "the export") -> None:
+    """Raise ``ValueError`` unless ``exported`` (the :func:`export_policy` file, loaded) holds ``model``'s weights:
+    every tensor equal, except the critic's own, which are equal or, in a critic-stripped export, zero."""
+    theirs, ours = model.policy.state_dict(), exported.policy.state_dict()
+    if theirs.keys() != ours.keys():
+        raise ValueError(f"{name} holds other tensors than the checkpoint's policy")
+    stripped = getattr(exported, "critic_stripped", False)
+    critic = critic_only_tensors(exported.policy) if stripped else {}
+    for key, tensor in theirs.items():
+        if not (ours[key].equal(tensor) or (key in critic and not ours[key].any())):
+            raise ValueError(f"the weights read back from {name} differ from the checkpoint's ({key})")
 
 
 def _export_refusal(policy: Any) -> str | None:

@@ -22,6 +22,7 @@ import torch
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
 from stable_baselines3.common.vec_env import VecEnv
 
+from racebench.agents.export import critic_parameter
 from racebench.agents.trust import record_written
 from racebench.envs.vector import TEACHER_KEY
 from racebench.training.config import TrainConfig
@@ -349,16 +350,6 @@ class ThreadsCallback(BaseCallback):
 
     def _on_step(self) -> bool:
         return True
-
-
-CRITIC_PREFIXES: tuple[str, ...] = (
-    "lstm_critic.", "critic.", "mlp_extractor.value_net.", "value_net.", "vf_features_extractor.",
-)  # fmt: skip
-
-
-def critic_parameter(name: str) -> bool:
-    """Whether a policy parameter belongs to the critic only (its GRU, MLP and head); all else acts."""
-    return name.startswith(CRITIC_PREFIXES)
 
 
 class CriticWarmupCallback(BaseCallback):

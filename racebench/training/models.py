@@ -12,6 +12,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, VecNormalize
 
+from racebench.agents.export import critic_only_tensors
 from racebench.agents.recurrent import RaceFeatures, RecurrentGRUPolicy
 from racebench.evaluation.protocol import EVAL_SEED_BASE
 from racebench.training.config import TrainConfig
@@ -37,6 +38,9 @@ def policy_weights(path: str | Path, model: Any) -> dict[str, torch.Tensor]:
     mine = model.policy.state_dict()
     if set(weights) != set(mine) or any(weights[k].shape != mine[k].shape for k in mine):
         raise ValueError(f"init_from: {path} is another network than this config's ({model.policy.__class__.__name__})")
+    critic = critic_only_tensors(model.policy)
+    if critic and not any(weights[name].any() for name in critic):  # a zero critic would never learn (no gradient)
+        raise ValueError(f"init_from: {path} is a policy-only export without its critic; name the run's own checkpoint")
     return weights
 
 

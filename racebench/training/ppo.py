@@ -323,7 +323,13 @@ def _load_model(
         raise AgentLoadError(f"checkpoint {str(path)!r} to resume does not exist")
     data = path.read_bytes()  # hashed and loaded from the same bytes
     require_trusted(path, data, "an SB3 checkpoint is unpickled when resumed", trust_code, written)
-    return SB3Agent._load(path, device, data)
+    model = SB3Agent._load(path, device, data)
+    if getattr(model, "critic_stripped", False):
+        raise AgentLoadError(
+            f"{str(path)!r} is a policy-only export without its critic (export-policy); resume from a training "
+            "checkpoint (the run folder's checkpoints/)"
+        )
+    return model
 
 
 def resume_seed(seed: int, timesteps: int, n_envs: int) -> int:

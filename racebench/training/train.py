@@ -9,9 +9,9 @@ Checkpoints saved before the split name this module in their pickled learning-ra
 from it: it stays importable.
 """
 
+from racebench.agents.export import CRITIC_PREFIXES, critic_parameter
 from racebench.agents.trust import own_policy_trust
 from racebench.training.callbacks import (
-    CRITIC_PREFIXES,
     AtomicCheckpointCallback,
     CriticWarmupCallback,
     CurriculumCallback,
@@ -20,7 +20,6 @@ from racebench.training.callbacks import (
     StudentBCCallback,
     TeacherBCCallback,
     ThreadsCallback,
-    critic_parameter,
     is_lap,
     mean_actions_along,
 )
