@@ -86,8 +86,9 @@ def test_the_site_ranks_the_unseen_tracks_on_their_own(board: tuple[Path, str], 
     assert names == ["strong", "signed", "weak", "short", "planner", "none"]
     assert [row[0][0] for row in table[1:]] == ["1", "2", "3", "–", "–", "–"]
     assert table[1][2][0].startswith("60 % [50–69]") and table[1][2][1]  # bold: above every other ranked interval
-    assert not table[2][2][1] and table[6][2][0] == "—" and "no unseen-tracks policy" in table[6][6][0]
-    assert "under 100 episodes" in table[4][6][0] and "reference" in table[5][6][0]
+    assert not table[2][2][1] and table[6][2][0] == "—" and "no unseen-tracks policy" in table[6][7][0]
+    assert "under 100 episodes" in table[4][7][0] and "reference" in table[5][7][0]
+    assert [row[4][0] for row in table[1:6]] == ["public"] * 5  # no unseen line is signed here
     assert page.tables["ranking-verified"][1][1][0].startswith("signed")  # still verified: the line is not signed
     main = [row for table in page.tables.values() for row in table if row and row[1][0].startswith("none ")]
     assert main and any(cell[0] == "—" for cell in main[0])  # the main ranking's unseen column

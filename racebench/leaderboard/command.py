@@ -61,7 +61,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="DIR",
         help="folder OUTSIDE the repository for the private records (resumable: <DIR>/<entry>-<track>)",
     )
-    p_sign.add_argument("--episodes", type=int, default=50, help="private episodes per own main id (default 50)")
+    p_sign.add_argument(
+        "--unseen", action="store_true",
+        help="sign the entry's unseen: line instead (its ONNX file on RaceObs-Unseen-v0's private seeds, each a track "
+        "of its own) into verified-unseen.json",
+    )  # fmt: skip
+    p_sign.add_argument("--episodes", type=int, default=None,
+                        help="private episodes per own main id (default 50; with --unseen 100)")  # fmt: skip
     p_sign.add_argument("--workers", type=int, default=1, help="evaluation processes (default 1)")
     p_sign.add_argument("--leaderboard", default=DEFAULT_LEADERBOARD, help=f"(default {DEFAULT_LEADERBOARD})")
 
@@ -127,11 +133,25 @@ def run(args: argparse.Namespace) -> int:
             from racebench.evaluation.seeds import salt_from_env
             from racebench.leaderboard.signing import check_verified, sign_entry
 
-            if args.episodes < 1:
+            if args.episodes is not None and args.episodes < 1:
                 raise EntryError(f"--episodes must be >= 1, got {args.episodes}")
             (entry,) = load_entries(args.leaderboard, [args.entry])
             salt = salt_from_env()
-            path = sign_entry(entry, salt, args.key, args.private_records, args.episodes, args.workers)
+            if args.unseen:
+                from racebench.leaderboard.unseen_signing import (
+                    UNSEEN_PRIVATE_EPISODES,
+                    check_unseen_verified,
+                    sign_unseen,
+                )
+
+                episodes = args.episodes or UNSEEN_PRIVATE_EPISODES
+                path = sign_unseen(entry, salt, args.key, args.private_records, episodes, args.workers)
+                cell = check_unseen_verified(entry, load_config(args.leaderboard))  # what the site will accept
+                print(f"{entry.name} {cell.env_id} [private]: {cell.successes}/{cell.n}, mean lap "
+                      f"{cell.lap_time_mean:.2f} s")  # fmt: skip
+                print(f"wrote {path} (signed; checks against the pinned maintainers' key)")
+                return 0
+            path = sign_entry(entry, salt, args.key, args.private_records, args.episodes or 50, args.workers)
             result = check_verified(entry, load_config(args.leaderboard))  # what the site will accept
             for env_id, cell in result.cells.items():
                 print(

@@ -24,7 +24,7 @@ from racebench.leaderboard.entries import (
 )
 from racebench.leaderboard.ranking import TRACK_LABELS, Row, _esc, _lap_html, _sr_html, _tier_badge, aggregate
 from racebench.leaderboard.robustness import robustness_data, robustness_section_html
-from racebench.leaderboard.unseen import NO_POLICY, UNSEEN_RANKED_EPISODES, UnseenRow, unseen_cell
+from racebench.leaderboard.unseen import NO_POLICY, UNSEEN_RANKED_EPISODES, UnseenRow, unseen_cell, unseen_row
 from racebench.reporting import video
 from racebench.reporting.plots import plot_track_3d
 
@@ -71,20 +71,21 @@ def _entry_data(row: Row) -> dict[str, Any]:
         },  # fmt: skip
         "verification_refused": row.refusal,
         "aggregate": aggregate(row.cells, row.outcomes()),
-        "unseen": _unseen_data(entry),
+        "unseen": _unseen_data(row.unseen or unseen_row(entry)),
         "robustness": robustness_data(row.robustness),
     }
 
 
-def _unseen_data(entry: Entry) -> dict[str, Any] | None:
-    """The unseen-tracks cell of the embedded data (the ranked count), None without one."""
-    cell = unseen_cell(entry)
+def _unseen_data(row: UnseenRow) -> dict[str, Any] | None:
+    """The unseen-tracks cell of the embedded data (signed private, else the public ranked count), None without."""
+    cell = row.cell
     if cell is None:
         return None
     return {
-        "env_id": UNSEEN_ID, "n": cell.n, "successes": cell.successes, "wilson95": list(cell.interval),
+        "env_id": UNSEEN_ID, "seed_set": cell.seed_set, "n": cell.n, "successes": cell.successes,
+        "wilson95": list(cell.interval),
         "lap_time_mean": None if math.isnan(cell.lap_time_mean) else cell.lap_time_mean,
-        "ranked": UnseenRow(entry, cell).ranked,
+        "ranked": row.ranked, "verification_refused": row.refusal,
     }  # fmt: skip
 
 
@@ -193,13 +194,15 @@ def _entry_page(row: Row, media: str = "") -> str:
         " successful laps.</p>\n"
         '<table id="cells"><tr><th>policy</th><th>env id</th><th>track</th><th>seed set</th><th>n</th><th>SR</th>'
         "<th>mean lap</th><th>median lap</th></tr>\n" + "\n".join(cell_rows) + "\n</table>\n"
-        + unseen_entry_html(entry) + "\n" + media
+        + unseen_entry_html(row.unseen or unseen_row(entry)) + "\n" + media
     )  # fmt: skip
     return _page(f"{entry.name} · racebench leaderboard", body, "../style.css")
 
 
-def unseen_entry_html(entry: Entry) -> str:
-    """An entry page's unseen-tracks section: its policy line and its public cells on the held-out tracks."""
+def unseen_entry_html(row: UnseenRow) -> str:
+    """An entry page's unseen-tracks section: its policy line, its signed private cell if any and its public cells
+    on the held-out tracks."""
+    entry = row.entry
     policy = entry.unseen
     parts = ['<h2 id="unseen-tracks">Unseen tracks</h2>']
     if policy is None:
@@ -209,6 +212,16 @@ def unseen_entry_html(entry: Entry) -> str:
         f"<p>Policy <code>{_esc(policy.policy)}</code> (sha256 <code>{_esc(policy.sha256)}</code>), records in "
         f"{_esc(', '.join(policy.records_dirs))}: public seeds, not covered by a signature.</p>"
     )
+    if row.signed and row.cell is not None:
+        lap = _lap_html(row.cell.lap_time_mean, len(row.cell.lap_times))
+        parts.append(
+            f"<p>{_tier_badge('verified')} Its ONNX file <code>{_esc(policy.onnx)}</code> re-flown "
+            f"by the maintainers on {row.cell.n} private seeds, each a track generated from a seed nobody knows "
+            f"(signed, <code>verified-unseen.json</code>): <b>{_sr_html(row.cell)}</b>, mean lap {lap}. The ranked "
+            "cell.</p>"
+        )
+    elif row.refusal:
+        parts.append(f'<p class="note">Signed result refused: {_esc(row.refusal)}</p>')
     everything, ranked = unseen_cell(entry, None), unseen_cell(entry)
     if everything is None:
         parts.append(f'<p class="note">Its records hold no public episode of {_esc(UNSEEN_ID)}.</p>')

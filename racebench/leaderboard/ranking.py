@@ -34,7 +34,7 @@ from racebench.leaderboard.entries import (
 )
 from racebench.leaderboard.robustness import EntryRobustness, entry_robustness, robustness_column_html
 from racebench.leaderboard.signing import VERIFIED_FILE, SignatureError, VerifiedResult
-from racebench.leaderboard.unseen import NO_POLICY, UNSEEN_RANKED_EPISODES, unseen_cell, unseen_rows
+from racebench.leaderboard.unseen import NO_POLICY, UNSEEN_RANKED_EPISODES, UnseenRow, unseen_row
 from racebench.reporting.tables import best_separated
 
 TRACK_LABELS: dict[str, str] = {"RaceObs-S-v0": "S", "RaceObs-Circle-v0": "3D Circle", "RaceObs-J-v0": "J"}
@@ -99,6 +99,7 @@ class Row:
     verified: VerifiedResult | None = None
     refusal: str | None = None  # why its verified.json was refused (None: none, or accepted)
     short: tuple[str, ...] = ()  # own main ids with fewer public episodes than RANKED_EPISODES (then unranked)
+    unseen: UnseenRow | None = None  # its unseen-tracks row (signed private cell or public), shown, never in the key
 
     @property
     def ranked(self) -> bool:
@@ -139,13 +140,14 @@ def entry_row(entry: Entry, config: dict[str, Any], pinned_key_sha256: str | Non
             verified = check_verified(entry, config, pinned_key_sha256)
         except SignatureError as exc:
             refusal = str(exc)
+    unseen = unseen_row(entry, config, pinned_key_sha256)
     if entry.privileged:
-        return Row(entry, "reference", _public_main_cells(entry), None, refusal)
+        return Row(entry, "reference", _public_main_cells(entry), None, refusal, unseen=unseen)
     if verified is not None:
-        return Row(entry, "verified", dict(verified.cells), verified)
+        return Row(entry, "verified", dict(verified.cells), verified, unseen=unseen)
     cells = _public_main_cells(entry, RANKED_EPISODES)
     short = tuple(i for i, cell in cells.items() if cell.n < RANKED_EPISODES)
-    return Row(entry, "self-reported", cells, None, refusal, short)
+    return Row(entry, "self-reported", cells, None, refusal, short, unseen)
 
 
 def check_verified(entry: Entry, config: dict[str, Any], pinned_key_sha256: str | None) -> VerifiedResult:
@@ -233,7 +235,7 @@ def _ranking_table(table_id: str, rows: list[Row], ranked: bool, bold: dict[str,
         tds.append(f'<td class="num budget">{_budget_html(entry)}</td>')
         seeds = ", ".join(sorted({c.seed_set for c in row.cells.values()})) or "–"
         tds.append(f"<td>{_esc(entry.meta['obs_mode'])}, {_esc(entry.kind)}<br><small>{_esc(seeds)} seeds</small></td>")
-        tds.append(f'<td class="num">{unseen_cell_html(entry)}</td>')
+        tds.append(f'<td class="num">{unseen_cell_html(row.unseen or unseen_row(entry))}</td>')
         body.append("<tr>" + "".join(tds) + "</tr>")
     return (
         f'<table class="ranking" id="{table_id}">\n<tr><th>#</th><th>method</th>'
@@ -488,18 +490,19 @@ def entry_summary(
 
 
 # ----------------------------------------------------------------- unseen tracks (racebench.leaderboard.unseen)
-def unseen_cell_html(entry: Entry) -> str:
-    """The main ranking's unseen-tracks column: the success rate, or "—" without an unseen-tracks policy."""
-    cell = unseen_cell(entry)
+def unseen_cell_html(row: UnseenRow) -> str:
+    """The main ranking's unseen-tracks column: the success rate (its seeds named), or "—" without a policy."""
+    cell = row.cell
     if cell is None:
         return NO_POLICY
-    short = f"<br><small>under {UNSEEN_RANKED_EPISODES} episodes</small>" if cell.n < UNSEEN_RANKED_EPISODES else ""
-    return _sr_html(cell) + short
+    full = row.signed or cell.n >= UNSEEN_RANKED_EPISODES
+    short = "" if full else f"<br><small>under {UNSEEN_RANKED_EPISODES} episodes</small>"
+    return _sr_html(cell) + f"<br><small>{_esc(row.seeds)} seeds</small>" + short
 
 
-def unseen_section(entries: Sequence[Entry]) -> str:
-    """The site's unseen-tracks ranking (HTML): its own table, after the main ranking."""
-    rows = unseen_rows(entries)
+def unseen_section(rows: Sequence[UnseenRow]) -> str:
+    """The site's unseen-tracks ranking (HTML): its own table, after the main ranking (``rows`` in
+    :func:`~racebench.leaderboard.unseen.unseen_rows`' order)."""
     bold = separated_best({r.entry.name: r.cell for r in rows if r.ranked})
     body, position = [], 0
     for row in rows:
@@ -511,12 +514,15 @@ def unseen_section(entries: Sequence[Entry]) -> str:
             status = "reference (privileged)"
         else:
             status = "ranked" if row.ranked else f"not ranked: under {UNSEEN_RANKED_EPISODES} episodes"
+        if row.refusal:
+            status += f"; signed result refused: {row.refusal}"
         lap = _lap_html(row.cell.lap_time_mean, len(row.cell.lap_times)) if row.cell else NO_POLICY
         klass = "num best" if row.entry.name in bold else "num"
         body.append(
             f'<tr><td class="num">{position if row.ranked else "–"}</td>'
             f'<td><a href="entries/{_esc(row.entry.name)}.html">{_esc(row.entry.name)}</a></td>'
             f'<td class="{klass}">{_sr_html(row.cell) if row.cell else NO_POLICY}</td><td class="num">{lap}</td>'
+            f"<td>{_esc(row.seeds) if row.cell else NO_POLICY}</td>"
             f"<td>{f'<code>{_esc(policy.policy)}</code>' if policy else NO_POLICY}</td>"
             f"<td>{_teacher_html(row.entry)}</td><td>{_esc(status)}</td></tr>"
         )
@@ -525,11 +531,13 @@ def unseen_section(entries: Sequence[Entry]) -> str:
         f"<p>The paper's open problem: one policy per method flown on {UNSEEN_RANKED_EPISODES} held-out generated "
         f"tracks (<code>{UNSEEN_ID}</code>: evaluation episode <i>i</i> flies held-out track <i>i</i> mod 100, with "
         "the paper's obstacles), named under <code>unseen:</code> in the entry. Its own ranking, by success rate, then"
-        f" mean lap time, on the first {UNSEEN_RANKED_EPISODES} public seeds; it never changes the ranking above."
-        " Public-seed records (self-reported for every tier). Bold: an interval above every other ranked method's."
-        " A method without such a policy shows —.</p>\n"
+        f" mean lap time, on the first {UNSEEN_RANKED_EPISODES} public seeds, or, where the maintainers signed the"
+        " line's ONNX file on private seeds (<code>verified-unseen.json</code>), on those: each private episode flies"
+        " a track generated from a seed nobody knows (column \"seeds\"). It never changes the ranking above; a"
+        " method's per-track signature does not cover this line. Bold: an interval above every other ranked"
+        " method's. A method without such a policy shows —.</p>\n"
         '<table class="ranking" id="ranking-unseen">\n<tr><th>#</th><th>method</th><th>SR held-out tracks</th>'
-        "<th>mean lap</th><th>policy</th><th>privileged teacher</th><th>status</th></tr>\n"
+        "<th>mean lap</th><th>seeds</th><th>policy</th><th>privileged teacher</th><th>status</th></tr>\n"
         + "\n".join(body)
         + "\n</table>"
     )

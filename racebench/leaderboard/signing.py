@@ -119,6 +119,31 @@ def cell_payload(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def check_private_records(name: str, line: str, records: Sequence[dict[str, Any]], onnx_sha256: str, salt: str) -> None:
+    """:class:`SignatureError` unless ``records`` (entry ``name``'s policy line ``line``) are of the ONNX file
+    ``onnx_sha256``, on this salt's private seeds (the first n, none picked), of this env version, made from
+    committed code and unprivileged."""
+    if not records:
+        raise SignatureError(f"{name}: no private records of its {line} policy")
+    fingerprint = salt_sha256(salt)
+    for record in records:
+        problem = None
+        if record["policy_sha256"] != onnx_sha256:
+            problem = f"is of another policy (sha256 {record['policy_sha256'][:12]}…)"
+        elif record["seed_set"] != "private" or record.get("seed_salt_sha256") != fingerprint:
+            problem = "is not on the private seeds of this salt"
+        elif record["env_version"] != ENV_VERSION:
+            problem = f"is of env version {record['env_version']}, this racebench is {ENV_VERSION}"
+        elif record["git_dirty"]:
+            problem = "was made from uncommitted code (git_dirty): evaluate from a clean checkout"
+        elif record["privileged"]:
+            problem = "is privileged"
+        if problem:
+            where = f"({record['env_id']}, seed {record['seed']})"
+            raise SignatureError(f"{name}: a record of its {line} policy {where} {problem}")
+    check_seed_prefixes(name, records, salt)  # every episode flown, none picked
+
+
 def build_payload(entry: Entry, private_records: Mapping[str, Sequence[dict[str, Any]]], salt: str) -> dict[str, Any]:
     """The payload of ``entry`` from each track's private records (validated: ONNX, this salt, first n seeds, clean).
 
@@ -130,25 +155,7 @@ def build_payload(entry: Entry, private_records: Mapping[str, Sequence[dict[str,
         if policy.onnx is None:
             raise SignatureError(f"{entry.name}: its {track} policy has no ONNX file: only ONNX policies are verified")
         records = list(private_records.get(track, ()))
-        if not records:
-            raise SignatureError(f"{entry.name}: no private records of its {track} policy")
-        for record in records:
-            problem = None
-            if record["policy_sha256"] != policy.onnx_sha256:
-                problem = f"is of another policy (sha256 {record['policy_sha256'][:12]}…)"
-            elif record["seed_set"] != "private" or record.get("seed_salt_sha256") != fingerprint:
-                problem = "is not on the private seeds of this salt"
-            elif record["env_version"] != ENV_VERSION:
-                problem = f"is of env version {record['env_version']}, this racebench is {ENV_VERSION}"
-            elif record["git_dirty"]:
-                problem = "was made from uncommitted code (git_dirty): evaluate from a clean checkout"
-            elif record["privileged"]:
-                problem = "is privileged"
-            if problem:
-                raise SignatureError(
-                    f"{entry.name}: a {track} record ({record['env_id']}, seed {record['seed']}) {problem}"
-                )
-        check_seed_prefixes(entry.name, records, salt)  # every episode flown, none picked
+        check_private_records(entry.name, track, records, policy.onnx_sha256, salt)
         by_id: dict[str, list[dict[str, Any]]] = {}
         for record in records:
             by_id.setdefault(record["env_id"], []).append(record)
@@ -232,6 +239,36 @@ def sign_payload(payload: Mapping[str, Any], private_key: Any) -> dict[str, Any]
     }
 
 
+def outside_repository(entry: Entry, private_dir: str | Path) -> Path:
+    """``private_dir`` resolved; :class:`SignatureError` if it lies inside the repository (private seeds and
+    records are never committed)."""
+    private_dir = Path(private_dir).resolve()
+    if private_dir.is_relative_to(entry.root.resolve()):
+        raise SignatureError(f"--private-records {str(private_dir)!r} lies inside the repository; the private "
+                             "records must stay outside it")  # fmt: skip
+    return private_dir
+
+
+def fly_private(
+    entry: Entry, onnx: str, env_ids: Sequence[str], out: Path, episodes: int, workers: int, salt: str
+) -> list[dict[str, Any]]:  # fmt: skip
+    """Fly the entry's ONNX file ``onnx`` on the first ``episodes`` private seeds of each of ``env_ids`` into
+    ``out`` (resumable: records already there are reused) and return those records."""
+    earlier = read_folder(out).sorted_records() if out.is_dir() else []
+    # Resuming keeps the label the earlier records carry (the evaluator refuses two labels in one folder).
+    label = earlier[0]["agent"] if earlier else out.name
+    evaluator = Evaluator(
+        str(entry.root / onnx), list(env_ids), episodes=episodes, out_dir=out, workers=workers,
+        agent_name=label, seed_set="private", salt=salt,
+    )  # fmt: skip
+    evaluator.run(progress=False)
+    wanted = {(env_id, seed) for env_id in env_ids for seed in evaluator.seeds}
+    found = read_folder(out)
+    if found.problems:
+        raise SignatureError(f"{entry.name}: invalid private record {found.problems[0].error()}")
+    return [record for record in found.sorted_records() if (record["env_id"], record["seed"]) in wanted]
+
+
 def sign_entry(
     entry: Entry, salt: str, key_path: str | Path, private_dir: str | Path, episodes: int = 50, workers: int = 1
 ) -> Path:
@@ -241,46 +278,33 @@ def sign_entry(
     ``private_dir`` must lie outside the repository: private seeds and records are never committed.
     """
     key = load_private_key(key_path)
-    private_dir = Path(private_dir).resolve()
-    if private_dir.is_relative_to(entry.root.resolve()):
-        raise SignatureError(f"--private-records {str(private_dir)!r} lies inside the repository; the private "
-                             "records must stay outside it")  # fmt: skip
+    private_dir = outside_repository(entry, private_dir)
     private: dict[str, list[dict[str, Any]]] = {}
     for track, policy in entry.policies.items():
         if policy.onnx is None:
             raise SignatureError(f"{entry.name}: its {track} policy has no ONNX file: only ONNX policies are verified")
         out = private_dir / f"{entry.name}-{track}"
-        earlier = read_folder(out).sorted_records() if out.is_dir() else []
-        # Resuming keeps the label the earlier records carry (the evaluator refuses two labels in one folder).
-        label = earlier[0]["agent"] if earlier else f"{entry.name}-{track}"
-        evaluator = Evaluator(
-            str(entry.root / policy.onnx), list(policy.main_ids), episodes=episodes, out_dir=out, workers=workers,
-            agent_name=label, seed_set="private", salt=salt,
-        )  # fmt: skip
-        evaluator.run(progress=False)
-        wanted = {(env_id, seed) for env_id in policy.main_ids for seed in evaluator.seeds}
-        found = read_folder(out)
-        if found.problems:
-            raise SignatureError(f"{entry.name}: invalid private record {found.problems[0].error()}")
-        records = [record for record in found.sorted_records() if (record["env_id"], record["seed"]) in wanted]
-        private[track] = records
+        private[track] = fly_private(entry, policy.onnx, policy.main_ids, out, episodes, workers, salt)
     document = sign_payload(build_payload(entry, private, salt), key)
     path = entry.folder / VERIFIED_FILE
     path.write_text(json.dumps(document, indent=1, sort_keys=True) + "\n")
     return path
 
 
-def check_verified(entry: Entry, config: Mapping[str, Any], pinned_key_sha256: str | None = None) -> VerifiedResult:
-    """Check ``entry``'s ``verified.json`` against the pinned key; :class:`SignatureError` names why it is refused."""
+def read_signed(
+    entry: Entry, filename: str, config: Mapping[str, Any], pinned_key_sha256: str | None = None
+) -> dict[str, Any]:  # fmt: skip
+    """The payload of the entry's signed document ``filename`` once its signature checks against the pinned
+    maintainers' key and it is of this env version and a listed salt; :class:`SignatureError` names why not."""
     pinned_key_sha256 = pinned_key_sha256 or MAINTAINERS_KEY_SHA256  # read now: tests pin their own key
-    path = entry.folder / VERIFIED_FILE
+    path = entry.folder / filename
     if not path.is_file():
-        raise SignatureError(f"{entry.name}: no signed result ({VERIFIED_FILE})")
+        raise SignatureError(f"{entry.name}: no signed result ({filename})")
     try:
         document = json.loads(path.read_text())
         payload, signature = document["payload"], base64.b64decode(document["signature"], validate=True)
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise SignatureError(f"{entry.name}: {VERIFIED_FILE} is not a signed result ({exc})") from exc
+        raise SignatureError(f"{entry.name}: {filename} is not a signed result ({exc})") from exc
     pem = config.get("maintainers_public_key")
     if not isinstance(pem, str):
         raise SignatureError(f"{entry.name}: leaderboard.yaml has no maintainers_public_key to check the signature")
@@ -296,12 +320,10 @@ def check_verified(entry: Entry, config: Mapping[str, Any], pinned_key_sha256: s
         public_key.verify(signature, canonical(payload))
     except (InvalidSignature, ValueError, TypeError) as exc:
         raise SignatureError(
-            f"{entry.name}: the signature of {VERIFIED_FILE} does not check against the maintainers' key "
+            f"{entry.name}: the signature of {filename} does not check against the maintainers' key "
             "(the result was edited after signing, or signed by another key)"
         ) from exc
     # Signed, so the payload is the maintainers' own words: what remains is whether it still describes this entry.
-    if payload.get("format") not in (1, SIGNED_FORMAT) or payload.get("entry") != entry.name:
-        raise SignatureError(f"{entry.name}: the signed result is of entry {payload.get('entry')!r}")
     if payload.get("env_version") != ENV_VERSION:
         raise SignatureError(
             f"{entry.name}: signed on env version {payload.get('env_version')}, this racebench is {ENV_VERSION}: "
@@ -309,6 +331,14 @@ def check_verified(entry: Entry, config: Mapping[str, Any], pinned_key_sha256: s
         )
     if payload.get("seed_salt_sha256") not in config.get("private_salt_sha256", []):
         raise SignatureError(f"{entry.name}: signed on the seeds of a salt not listed in leaderboard.yaml")
+    return payload
+
+
+def check_verified(entry: Entry, config: Mapping[str, Any], pinned_key_sha256: str | None = None) -> VerifiedResult:
+    """Check ``entry``'s ``verified.json`` against the pinned key; :class:`SignatureError` names why it is refused."""
+    payload = read_signed(entry, VERIFIED_FILE, config, pinned_key_sha256)
+    if payload.get("format") not in (1, SIGNED_FORMAT) or payload.get("entry") != entry.name:
+        raise SignatureError(f"{entry.name}: the signed result is of entry {payload.get('entry')!r}")
     signed = {p["track"]: p for p in payload["policies"]}
     if set(signed) != set(entry.policies):
         raise SignatureError(

@@ -54,6 +54,7 @@ from racebench.leaderboard.ranking import (
     tier_tables,
     unseen_section,
 )
+from racebench.leaderboard.unseen import unseen_rows
 from racebench.utils.files import atomic_write
 
 CSS = """
@@ -170,7 +171,7 @@ def build_site(
         " has the table). SR cells: percentage, 95 % Wilson interval, successes/episodes."
         " <b>Bold</b> only where a method's interval lies entirely above every other method's of its tier in"
         " that column. The held-out generated tracks have their own ranking (Unseen tracks, below the tiers).</p>\n"
-        + "\n".join(sections) + unseen_section(entries)
+        + "\n".join(sections) + unseen_section(unseen_rows(entries, config, pinned_key_sha256))
         + '\n<h2 id="aggregate-statistics">Aggregate statistics</h2>\n'
         "<p>The rank key (mean own-track success over the tracks a method has) with a 95 % percentile interval from"
         f" scipy's bootstrap ({BOOTSTRAP_RESAMPLES} resamples of the episodes within each track, i.e. stratified"
