@@ -40,7 +40,6 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
         "vision-distill-ppo-Circle/vision-distill-ppo-Circle.zip"
     ),
     "b95ac725bf00271c31b1cb00bb383e29dc1c887d30fe7311e740e4c051d9510f": "vision-distill-ppo-J/vision-distill-ppo-J.zip",
-    "22caeea1d89e61b0de28e6f3392b8911e94647bd7725c4f162a2f9473e4e8bde": "vision-ppo-Circle/vision-ppo-Circle.zip",
     "1c297ec8d07ba5cdb8b77aacd8be89bd68cc4b43ecd869a1f6a7f4e800aebb12": "state-ppo-S/state-ppo-S.zip",
     "de4138705b1c38955662cd98a4230f8fe281e61abc8834d1dff72dbca0b59b6a": "state-ppo-J/state-ppo-J.zip",
     "5a0cb6a1746be02d978186082627f4a558f5463faed3cf3f9e869bf3b2366df3": "state-ppo-Circle/state-ppo-Circle.zip",
@@ -62,6 +61,7 @@ TRUSTED_CHECKPOINTS: dict[str, str] = {
     "6770750ec6407172f0795e4d66e7f5372017332d13d69adfff60a5aa65d210e4": "vision-no-gru-Circle/vision-no-gru-Circle.zip",
     "4c187ca78a7743a3740196b49d42cf0a99c7f435b3b0cd707e09ddf2bc85cdeb": "vision-ppo-S/vision-ppo-S.zip",
     "bfbdac773bf7c7d9d1d113703f155332b3471c933962c1fdf4d3d8ab10cc65f3": "vision-ppo-J/vision-ppo-J.zip",
+    "8b1a926ac5c716cf179ef9f642d1f514e4a655d5c59249cfc89f7ee1a852e771": "vision-ppo-Circle/vision-ppo-Circle.zip",
 }
 
 
