@@ -334,6 +334,24 @@ def read_signed(
     return payload
 
 
+def check_signed_file(entry: Entry, path: str, signed_sha256: str) -> None:
+    """:class:`SignatureError` unless the entry's file ``path`` still hashes to the signed sha256."""
+    actual = sha256_file(entry.root / path) if (entry.root / path).is_file() else "missing"
+    if actual != signed_sha256:
+        raise SignatureError(
+            f"{entry.name}: the policy file {path} (sha256 {actual[:12]}…) is not the one signed "
+            f"(sha256 {signed_sha256[:12]}…): swapped after signing"
+        )
+
+
+def signed_cell(entry: Entry, env_id: str, c: Mapping[str, Any]) -> Cell:
+    """The :class:`Cell` of a signed cell payload, once its counts and lap times agree."""
+    laps = tuple(float(t) for t in c["lap_times"])
+    if not (0 <= c["successes"] <= c["n"] and len(laps) == c["successes"] and all(map(math.isfinite, laps))):
+        raise SignatureError(f"{entry.name}: the signed {env_id} cell is inconsistent")
+    return Cell(env_id, "private", c["n"], c["successes"], laps)
+
+
 def check_verified(entry: Entry, config: Mapping[str, Any], pinned_key_sha256: str | None = None) -> VerifiedResult:
     """Check ``entry``'s ``verified.json`` against the pinned key; :class:`SignatureError` names why it is refused."""
     payload = read_signed(entry, VERIFIED_FILE, config, pinned_key_sha256)
@@ -351,20 +369,12 @@ def check_verified(entry: Entry, config: Mapping[str, Any], pinned_key_sha256: s
             raise SignatureError(
                 f"{entry.name}: the {track} policy is {policy.onnx!r}, the signed one {mine['policy']!r}"
             )
-        actual = sha256_file(entry.root / policy.onnx) if (entry.root / policy.onnx).is_file() else "missing"
-        if actual != mine["policy_sha256"]:
-            raise SignatureError(
-                f"{entry.name}: the policy file {policy.onnx} (sha256 {actual[:12]}…) is not the one signed "
-                f"(sha256 {mine['policy_sha256'][:12]}…): swapped after signing"
-            )
+        check_signed_file(entry, policy.onnx, mine["policy_sha256"])
         for env_id in policy.main_ids:
             c = mine["cells"].get(env_id)
             if c is None:
                 raise SignatureError(f"{entry.name}: the signed result has no {env_id} cell for its {track} policy")
-            laps = tuple(float(t) for t in c["lap_times"])
-            if not (0 <= c["successes"] <= c["n"] and len(laps) == c["successes"] and all(map(math.isfinite, laps))):
-                raise SignatureError(f"{entry.name}: the signed {env_id} cell is inconsistent")
-            cells[env_id] = Cell(env_id, "private", c["n"], c["successes"], laps)
+            cells[env_id] = signed_cell(entry, env_id, c)
     view = entry_view_sha256(entry)
     signed_view = payload.get("entry_sha256") if payload["format"] == SIGNED_FORMAT else FORMAT1_VIEWS.get(entry.name)
     if view != signed_view:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -28,14 +27,15 @@ from racebench.leaderboard.signing import (
     canonical,
     cell_payload,
     check_private_records,
+    check_signed_file,
     fly_private,
     load_private_key,
     outside_repository,
     read_signed,
     records_sha256,
     sign_payload,
+    signed_cell,
 )
-from racebench.utils.files import sha256_file
 
 UNSEEN_VERIFIED_FILE = "verified-unseen.json"
 UNSEEN_SIGNED_FORMAT = 1
@@ -124,18 +124,10 @@ def check_unseen_verified(
         raise SignatureError(
             f"{entry.name}: its {UNSEEN_KEY} ONNX file is {now!r}, the signed one {payload['policy']!r}"
         )
-    actual = sha256_file(entry.root / line.onnx) if (entry.root / line.onnx).is_file() else "missing"
-    if actual != payload["policy_sha256"]:
-        raise SignatureError(
-            f"{entry.name}: the {UNSEEN_KEY} policy file {line.onnx} (sha256 {actual[:12]}…) is not the one signed "
-            f"(sha256 {payload['policy_sha256'][:12]}…): swapped after signing"
-        )
-    c = payload["cell"]
-    laps = tuple(float(t) for t in c["lap_times"])
-    if not (0 <= c["successes"] <= c["n"] and len(laps) == c["successes"] and all(map(math.isfinite, laps))):
-        raise SignatureError(f"{entry.name}: the signed {UNSEEN_ID} cell is inconsistent")
+    check_signed_file(entry, line.onnx, payload["policy_sha256"])
+    cell = signed_cell(entry, UNSEEN_ID, payload["cell"])
     if unseen_view_sha256(entry) != payload.get("unseen_sha256"):
         raise SignatureError(
             f"{entry.name}: its {UNSEEN_KEY} line (files, records or budget) changed after signing: sign it again"
         )
-    return Cell(UNSEEN_ID, "private", c["n"], c["successes"], laps)
+    return cell
